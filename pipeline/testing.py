@@ -1,7 +1,8 @@
 """Run one stage's ``run`` function outside a workspace, for unit tests of stages.
 
-The runner is the only thing that commits objects; this helper just builds a
-``StageContext`` over plain folders so a stage's algorithm can be tested in isolation::
+The runner is the only thing that commits objects; this helper builds a ``StageContext`` over
+plain folders, with the runner's own progress lines and executor, so a stage's algorithm can
+be tested in isolation::
 
     out = run_stage_for_test(SEQUENCE_STAGE, tmp_path, inputs={}, params={"fps": 24})
 """
@@ -11,41 +12,29 @@ from __future__ import annotations
 import json
 import logging
 from pathlib import Path
-from typing import Any, Callable, Mapping, Sequence
+from typing import Any, Mapping
 
+from pipeline.executors import LocalExecutor
+from pipeline.progress import progress_factory
+from pipeline.metrics import clean_metrics
 from pipeline.stage import Stage, StageContext
 
 
-class SerialExecutor:
+class SerialExecutor(LocalExecutor):
     """Runs items one after another in this process (tests, debugging)."""
 
-    def map(self, fn: Callable, items: Sequence, *, desc: str = "items", gpu: bool = False) -> list:
-        return [fn(item) for item in items]
-
-
-class _LogProgress:
-    def __init__(self, log: logging.Logger, total: int, unit: str) -> None:
-        self.log, self.total, self.unit, self.done = log, total, unit, 0
-
-    def advance(self, n: int = 1, **fields: Any) -> None:
-        self.done += n
-
-    def close(self) -> None:
-        self.log.debug("%d/%d %s", self.done, self.total, self.unit)
-
-    def __enter__(self) -> "_LogProgress":
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
+    def __init__(self, workers: int | None = 1, progress_factory=None) -> None:
+        super().__init__(workers=1, progress_factory=progress_factory)
 
 
 def run_stage_for_test(stage: Stage, workdir: Path, inputs: Mapping[str, Path] | None = None,
-                       params: Mapping[str, Any] | None = None) -> Path:
+                       params: Mapping[str, Any] | None = None, *, subject: str = "test",
+                       workers: int = 1) -> Path:
     """Run ``stage`` with ``params`` over ``inputs``; returns its output folder.
 
     Output goes to ``workdir/<stage.name>`` (extra outputs to ``workdir/<stage.name>.<extra>``),
-    metrics to ``metrics.json`` in it, exactly as the runner writes them.
+    metrics to ``metrics.json`` in it, exactly as the runner writes them. ``workers > 1`` runs
+    ``ctx.executor.map`` on a process pool as the runner would.
     """
     workdir = Path(workdir)
     out = workdir / stage.name
@@ -55,14 +44,20 @@ def run_stage_for_test(stage: Stage, workdir: Path, inputs: Mapping[str, Path] |
         path.mkdir(parents=True, exist_ok=False)
     log = logging.getLogger(f"stage.{stage.name}")
     metrics: dict[str, float] = {}
-    ctx = StageContext(
-        stage=stage.name, subject="test", params=stage.params(**dict(params or {})),
-        inputs=dict(inputs or {}), out=out, extra_outputs=extra, log=log, metrics=metrics,
-        cache_dir=workdir / ".cache" / stage.name, shared_cache_dir=workdir / ".shared_cache",
-        executor=SerialExecutor(), progress_factory=lambda total, unit: _LogProgress(log, total, unit),
-    )
-    ctx.cache_dir.mkdir(parents=True, exist_ok=True)
-    ctx.shared_cache_dir.mkdir(parents=True, exist_ok=True)
-    stage.run(ctx)
-    (out / "metrics.json").write_text(json.dumps(metrics, indent=1, sort_keys=True))
+    factory = progress_factory(stage.name, log, tty=False)
+    with LocalExecutor(workers=workers, progress_factory=factory) as executor:
+        ctx = StageContext(
+            stage=stage.name, subject=subject, params=stage.params(**dict(params or {})),
+            inputs=dict(inputs or {}), out=out, extra_outputs=extra, log=log, metrics=metrics,
+            cache_dir=workdir / ".cache" / stage.name, shared_cache_dir=workdir / ".shared_cache",
+            executor=executor, progress_factory=factory,
+        )
+        ctx.cache_dir.mkdir(parents=True, exist_ok=True)
+        ctx.shared_cache_dir.mkdir(parents=True, exist_ok=True)
+        stage.run(ctx)
+    clean = clean_metrics(stage.name, metrics)
+    metrics_file = out / "metrics.json"
+    if metrics_file.is_file():
+        clean = {**json.loads(metrics_file.read_text(encoding="utf-8")), **clean}
+    metrics_file.write_text(json.dumps(clean, indent=1, sort_keys=True) + "\n", encoding="utf-8")
     return out

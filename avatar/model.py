@@ -1,0 +1,246 @@
+"""The relightable MVP head: mesh encoder (VAE), geometry branch, relightable appearance and opacity.
+
+Shapes: B = batch, U = guide vertices, P = N^2 primitives, M = voxels per side.
+Everything lives in head space (metres); ``cam_pos`` and ``light_pos`` are head-space points.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from avatar.config import AvatarConfig
+from avatar.layout import GuideLayout
+from avatar.raymarch import Primitives
+
+#: Sigmoid input giving a scale of exactly 1 x the base size at initialisation.
+_SCALE_INIT = float(np.log(0.25 / 1.0))
+
+#: softplus(-2) ~ 0.13: initial density = 0.13 / base half size.
+_ALPHA_INIT = -2.0
+
+#: Vertex offsets are fed to and decoded from the networks in centimetres (values O(1)).
+OFFSET_SCALE_M = 0.01
+
+
+class MeshEncoder(nn.Module):
+    """Deep-Appearance-Model style geometry encoder: guide-vertex offsets -> (mu, logvar) of z."""
+
+    def __init__(self, num_vertices: int, hidden: int, latent_dim: int) -> None:
+        super().__init__()
+        self.net = nn.Sequential(nn.Linear(3 * num_vertices, hidden), nn.LeakyReLU(0.2),
+                                 nn.Linear(hidden, hidden), nn.LeakyReLU(0.2))
+        self.mu = nn.Linear(hidden, latent_dim)
+        self.logvar = nn.Linear(hidden, latent_dim)
+        nn.init.zeros_(self.logvar.weight)
+        nn.init.constant_(self.logvar.bias, -4.0)
+
+    def forward(self, offsets_cm: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``offsets_cm`` [B, U, 3] -> mu [B, Z], logvar [B, Z]."""
+        h = self.net(offsets_cm.flatten(1))
+        return self.mu(h), self.logvar(h)
+
+
+class _UpBranch(nn.Module):
+    """Transposed convs (k4 s2 p1) from 8 x 8 up, each fed the conditioning image at its input size."""
+
+    def __init__(self, in_channels: int, channels: tuple[int, ...], cond_channels: int) -> None:
+        super().__init__()
+        self.cond_channels = cond_channels
+        layers, c_in = [], in_channels
+        for c_out in channels:
+            layers.append(nn.ConvTranspose2d(c_in + cond_channels, c_out, 4, 2, 1))
+            c_in = c_out
+        self.layers = nn.ModuleList(layers)
+
+    def forward(self, feature: torch.Tensor, cond: "callable | None" = None) -> torch.Tensor:
+        """``feature`` [B, C, 8, 8]; ``cond(size)`` -> [B, cond_channels, size, size]. Output before the last activation."""
+        x = feature
+        for i, layer in enumerate(self.layers):
+            if self.cond_channels:
+                x = torch.cat([x, cond(x.shape[-1])], 1)
+            x = layer(x)
+            if i < len(self.layers) - 1:
+                x = F.leaky_relu(x, 0.2)
+        return x
+
+
+@dataclass
+class DecodedGeometry:
+    """The light-independent part of a decoded frame: boxes, densities, guide mesh and the shared feature."""
+
+    centre: torch.Tensor  # [B, P, 3]
+    rotation: torch.Tensor  # [B, P, 3, 3]
+    half_extent: torch.Tensor  # [B, P, 3]
+    density: torch.Tensor  # [B, P, M, M, M]
+    guide_vertices: torch.Tensor  # [B, U, 3]
+    feature: torch.Tensor  # [B, C, 8, 8]
+
+    def primitives(self, rgb: torch.Tensor) -> Primitives:
+        """Assemble raymarchable primitives with colours ``rgb`` [B, P, M, M, M, 3]."""
+        return Primitives(self.centre, self.rotation, self.half_extent, rgb, self.density)
+
+
+def _rodrigues(rotvec: torch.Tensor) -> torch.Tensor:
+    """Axis-angle [..., 3] -> rotation matrices [..., 3, 3] (smooth at 0)."""
+    theta2 = (rotvec * rotvec).sum(-1, keepdim=True)[..., None]  # [..., 1, 1]
+    theta = torch.sqrt(theta2 + 1e-12)
+    x, y, z = rotvec.unbind(-1)
+    zero = torch.zeros_like(x)
+    k = torch.stack([zero, -z, y, z, zero, -x, -y, x, zero], -1).reshape(*rotvec.shape[:-1], 3, 3)
+    eye = torch.eye(3, dtype=rotvec.dtype, device=rotvec.device).expand_as(k)
+    a = torch.sin(theta) / theta
+    b = (1.0 - torch.cos(theta)) / (theta2 + 1e-12)
+    return eye + a * k + b * (k @ k)
+
+
+class RelightableMVP(nn.Module):
+    """Relightable mixture of volumetric primitives (Xu et al. 2024 on top of MVP).
+
+    ``config.light_basis == 0``: the paper's model, appearance conditioned on the 6-channel
+    image of per-primitive view and light directions. ``config.light_basis == L > 0``: the
+    TRAvatar* baseline's network, conditioned on the view directions and on L light-basis
+    weights (see ``avatar.travatar``).
+    """
+
+    def __init__(self, config: AvatarConfig, layout: GuideLayout, num_bars: int) -> None:
+        super().__init__()
+        self.config = config
+        n, m = config.prims_per_side, config.voxels_per_side
+        for name, arr in layout.as_arrays().items():
+            self.register_buffer(name, torch.as_tensor(arr))
+        self.num_guide_vertices = int(layout.mean_guide_vertices.shape[0])
+        self.encoder = MeshEncoder(self.num_guide_vertices, config.encoder_hidden, config.latent_dim)
+        self.mesh_decoder = nn.Sequential(nn.Linear(config.latent_dim, config.encoder_hidden), nn.LeakyReLU(0.2),
+                                          nn.Linear(config.encoder_hidden, 3 * self.num_guide_vertices))
+        c = config.base_channels
+        self.feature_mlp = nn.Sequential(nn.Linear(config.latent_dim, c * 64), nn.LeakyReLU(0.2))
+        cond = 6 if config.light_basis == 0 else 3 + config.light_basis
+        self.rgb_branch = _UpBranch(c, config.rgb_channels, cond)
+        self.alpha_branch = _UpBranch(c, config.alpha_channels, 0)
+        geo_channels = (config.geometry_channels,) * config.geometry_layers
+        self.geometry_branch = _UpBranch(c, geo_channels, 0) if geo_channels else None
+        self.geometry_head = nn.Conv2d(geo_channels[-1] if geo_channels else c, 9, 1)
+        nn.init.zeros_(self.geometry_head.weight)
+        nn.init.zeros_(self.geometry_head.bias)
+        nn.init.constant_(self.rgb_branch.layers[-1].bias, 0.05)
+        # Start semi-transparent (a ray through one box gathers ~0.3 opacity): a saturated ray
+        # has no opacity gradient, so boxes that start opaque where the matte is empty could
+        # never be cleared by the matte loss.
+        nn.init.constant_(self.alpha_branch.layers[-1].bias, _ALPHA_INIT)
+        self.log_bar_intensity = nn.Parameter(torch.zeros(num_bars))
+        self.density_scale = float(1.0 / float(np.mean(layout.half_extent_m)))
+        self.n, self.m = n, m
+
+    # ---- encoder -------------------------------------------------------------------------
+    def guide_vertices_of(self, mesh_vertices: torch.Tensor) -> torch.Tensor:
+        """Guide vertices [B, U, 3] of full tracked meshes [B, V, 3] (or of guide meshes, passed through)."""
+        if mesh_vertices.shape[1] == self.num_guide_vertices:
+            return mesh_vertices
+        return mesh_vertices[:, self.guide_vertex_ids]
+
+    def encode(self, mesh_vertices: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Tracked meshes [B, V, 3] (head space, metres) -> mu, logvar [B, Z]."""
+        offsets = (self.guide_vertices_of(mesh_vertices) - self.mean_guide_vertices) / OFFSET_SCALE_M
+        return self.encoder(offsets)
+
+    # ---- decoder -------------------------------------------------------------------------
+    def decode_geometry(self, z: torch.Tensor) -> DecodedGeometry:
+        """Latent codes [B, Z] -> primitive boxes and densities (both independent of light and view)."""
+        b, n, m = z.shape[0], self.n, self.m
+        verts = self.mean_guide_vertices + OFFSET_SCALE_M * self.mesh_decoder(z).view(b, -1, 3)  # [B, U, 3]
+        tri = verts[:, self.anchor_tris]  # [B, P, 3, 3]
+        base = (tri * self.anchor_bary[None, :, :, None]).sum(2)  # [B, P, 3]
+        e1, e2 = tri[:, :, 1] - tri[:, :, 0], tri[:, :, 2] - tri[:, :, 0]
+        normal = F.normalize(torch.cross(e1, e2, dim=-1), dim=-1, eps=1e-12) * self.normal_sign[:, None]
+        tangent = F.normalize(e1 - (e1 * normal).sum(-1, keepdim=True) * normal, dim=-1, eps=1e-12)
+        bitangent = torch.cross(normal, tangent, dim=-1)
+        tbn = torch.stack([tangent, bitangent, normal], -1)  # [B, P, 3, 3] head_from_tbn (columns)
+        feature = self.feature_mlp(z).view(b, -1, 8, 8)
+        g = feature if self.geometry_branch is None else F.leaky_relu(self.geometry_branch(feature), 0.2)
+        delta = self.geometry_head(g).flatten(2).transpose(1, 2)  # [B, P, 9], P in row-major grid order
+        half0 = self.half_extent_m[None, :, None]  # [1, P, 1]
+        # Position deltas, in the primitive's tangent frame, are bounded to one base half size so
+        # a primitive stays attached to its patch of the guide mesh.
+        centre = base + (tbn @ (torch.tanh(delta[..., :3, None]) * half0[..., None]))[..., 0]
+        rotation = tbn @ _rodrigues(delta[..., 3:6])
+        # Scales stay within [0.75, 2] x the base size: the smallest still overlaps its
+        # neighbours (prim_overlap > 1 / 0.75), so the volume prior cannot open holes.
+        half_extent = half0 * (0.75 + 1.25 * torch.sigmoid(delta[..., 6:9] + _SCALE_INIT))
+        raw_alpha = self.alpha_branch(feature)  # [B, M_z, N*M, N*M]
+        density = F.softplus(raw_alpha) * self.density_scale
+        density = density.view(b, m, n, m, n, m).permute(0, 2, 4, 1, 3, 5).reshape(b, n * n, m, m, m)
+        return DecodedGeometry(centre, rotation, half_extent, density, verts, feature)
+
+    def _tile(self, per_prim: torch.Tensor) -> torch.Tensor:
+        """Per-primitive values [B, P, C] -> UV image [B, C, N*M, N*M], constant over each M x M tile."""
+        b, _, c = per_prim.shape
+        img = per_prim.transpose(1, 2).reshape(b, c, self.n, self.n)
+        return img.repeat_interleave(self.m, 2).repeat_interleave(self.m, 3)
+
+    def _to_voxels(self, raw_rgb: torch.Tensor) -> torch.Tensor:
+        """[B, 3*M, N*M, N*M] (channel = z*3 + rgb) -> [B, P, M, M, M, 3]."""
+        b, n, m = raw_rgb.shape[0], self.n, self.m
+        return raw_rgb.view(b, m, 3, n, m, n, m).permute(0, 3, 5, 1, 4, 6, 2).reshape(b, n * n, m, m, m, 3)
+
+    def direction_image(self, geometry: DecodedGeometry, cam_pos: torch.Tensor, light_pos: torch.Tensor) -> torch.Tensor:
+        """The paper's conditioning image I [B, 6, N*M, N*M]: unit v_k = p_cam - c_k and l_k = p_light - c_k."""
+        view = F.normalize(cam_pos[:, None] - geometry.centre, dim=-1)  # [B, P, 3]
+        light = F.normalize(light_pos[:, None] - geometry.centre, dim=-1)  # [B, P, 3]
+        return self._tile(torch.cat([view, light], -1))
+
+    def decode_rgb(self, geometry: DecodedGeometry, cam_pos: torch.Tensor, light_pos: torch.Tensor | None = None,
+                   light_weights: torch.Tensor | None = None, intensity: torch.Tensor | None = None) -> torch.Tensor:
+        """RGB voxels [B, P, M, M, M, 3] for cameras at ``cam_pos`` [B, 3] under one light per item.
+
+        Ours: ``light_pos`` [B, 3] (head space). TRAvatar*: ``light_weights`` [B, L] over its light
+        basis. ``intensity`` [B] scales the result (e.g. ``bar_intensity(bar_ids)``).
+        """
+        if self.config.light_basis == 0:
+            if light_pos is None:
+                raise ValueError("decode_rgb: the relightable model needs light_pos [B, 3]")
+            image = self.direction_image(geometry, cam_pos, light_pos)  # [B, 6, NM, NM]
+
+            def cond(size: int) -> torch.Tensor:
+                return F.interpolate(image, size=(size, size), mode="bilinear", antialias=True, align_corners=False)
+        else:
+            if light_weights is None:
+                raise ValueError("decode_rgb: the TRAvatar* model needs light_weights [B, L]")
+            view = self._tile(F.normalize(cam_pos[:, None] - geometry.centre, dim=-1))  # [B, 3, NM, NM]
+
+            def cond(size: int) -> torch.Tensor:
+                v = F.interpolate(view, size=(size, size), mode="bilinear", antialias=True, align_corners=False)
+                w = light_weights[:, :, None, None].expand(-1, -1, size, size)
+                return torch.cat([v, w], 1)
+        rgb = F.relu(self.rgb_branch(geometry.feature, cond))
+        if intensity is not None:
+            rgb = rgb * intensity[:, None, None, None]
+        return self._to_voxels(rgb)
+
+    def bar_intensity(self, bar_index: torch.Tensor) -> torch.Tensor:
+        """Learnt intensity [B] of LED bars ``bar_index`` [B] (an index < 0, a novel light, gets 1)."""
+        known = bar_index >= 0
+        scale = torch.exp(self.log_bar_intensity[bar_index.clamp(min=0)])
+        return torch.where(known, scale, torch.ones_like(scale))
+
+    def volume_prior(self, geometry: DecodedGeometry) -> torch.Tensor:
+        """MVP's volume loss: mean over the batch of the summed primitive volumes (in units of the base volume)."""
+        base = (self.half_extent_m ** 3)[None]  # [1, P]
+        return (geometry.half_extent.prod(-1) / base).sum(-1).mean() / self.half_extent_m.numel()
+
+
+def kl_divergence(mu: torch.Tensor, logvar: torch.Tensor) -> torch.Tensor:
+    """KL(q(z|x) || N(0, I)), averaged over the batch and latent dimensions."""
+    return 0.5 * (mu.pow(2) + logvar.exp() - 1.0 - logvar).mean()
+
+
+def count_parameters(model: nn.Module) -> int:
+    """Number of trainable parameters."""
+    return sum(p.numel() for p in model.parameters() if p.requires_grad)
+
+
+__all__ = ["RelightableMVP", "DecodedGeometry", "MeshEncoder", "kl_divergence", "count_parameters"]

@@ -1,0 +1,194 @@
+"""Relighting benchmark: voxel-space light sum vs naive, adaptive directions, PSNR vs render time.
+
+1. Seconds per frame for a 256-direction environment map: the voxel-space sum (decode the
+   per-light RGB grids in batches, sum, raymarch once) against the naive render-each-light-
+   and-sum, same output to within 1e-4; tiny configuration on the CPU (random weights: the
+   timing does not depend on training), paper configuration when CUDA is present.
+2. Per shipped map: directions, selection time and error of the adaptive selection against
+   the paper's uniform 256 (error = PSNR against a 2048-direction reference render of the
+   studio's true subject, ray traced with shadows: the light-sampling error alone).
+3. Chart ``bench-results/relight_psnr_vs_time.png``: that PSNR against our render time per
+   frame as the number of directions grows (64..1024), per map (the render time depends on
+   the number of lights only, so it is measured once per count).
+
+Timings are on a shared machine and noisy. Writes ``bench-results/relight.json``.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+OUT = ROOT / "bench-results"
+MAPS = sorted((ROOT / "assets" / "envmaps").glob("*/*.exr"))
+CHART_MAPS = ("courtyard", "studio", "sunrise", "StageEnvLatLong")
+
+
+def _model(config):
+    import trimesh
+
+    from avatar.layout import build_layout
+    from avatar.model import RelightableMVP
+
+    mesh = trimesh.creation.icosphere(subdivisions=3, radius=0.1)
+    torch.manual_seed(0)
+    layout = build_layout(np.asarray(mesh.vertices, np.float32), np.asarray(mesh.faces), config.prims_per_side)
+    return RelightableMVP(config, layout, num_bars=32).eval(), np.asarray(mesh.vertices, np.float32)
+
+
+def _camera(width: int, height: int):
+    from stages.relight.sequences import ViewSpec
+
+    view = ViewSpec(width, height, 0.6, 30.0)
+    return view.camera(view.front_eye())
+
+
+def _sync(device: str) -> None:
+    if device == "cuda":
+        torch.cuda.synchronize()
+
+
+def time_fast_vs_naive(config, device: str, width: int, height: int, repeats: int = 2) -> dict:
+    from scene.envmap import read_envmap, select_uniform
+    from stages.relight.render import HeadRenderer
+
+    model, verts = _model(config)
+    renderer = HeadRenderer(model, config.steps_per_ray, light_batch=16 if device == "cpu" else 32, device=device)
+    geometry = renderer.geometry(verts)
+    lights = select_uniform(read_envmap(ROOT / "assets/envmaps/blender-cc0/courtyard.exr"), 256)
+    pos, rgb = lights.positions_world(50.0), lights.irradiance_rgb / lights.irradiance_rgb.sum(0).max()
+    cam = _camera(width, height)
+    renderer.render_lights(geometry, cam, pos[:4], rgb[:4])  # warm-up
+    fast_s = []
+    for _ in range(repeats):
+        _sync(device)
+        start = time.perf_counter()
+        fast = renderer.render_lights(geometry, cam, pos, rgb)
+        _sync(device)
+        fast_s.append(time.perf_counter() - start)
+    _sync(device)
+    start = time.perf_counter()
+    naive = renderer.render_lights_naive(geometry, cam, pos, rgb)
+    _sync(device)
+    naive_s = time.perf_counter() - start
+    return {"directions": len(lights), "image": f"{width}x{height}", "device": device,
+            "envmap_seconds_per_frame": min(fast_s), "naive_envmap_seconds_per_frame": naive_s,
+            "speedup": naive_s / min(fast_s), "max_abs_diff": float(np.abs(fast.rgb - naive.rgb).max()),
+            "image_peak": float(fast.rgb.max())}
+
+
+def _studio_psnr(subject, frame, cam, envmap, lights, reference) -> float:
+    from hardware.studio.envmap_truth import _studio
+    from scene.lights import DirectionalLight
+
+    img = _studio(subject, None).render_lights(
+        frame, cam, [DirectionalLight(d, e) for d, e in zip(lights.directions_world, lights.irradiance_rgb)],
+        noise=False).rgb
+    white = max(float(np.percentile(reference, 99.5)), 1e-8)
+    mse = float(np.mean((img / white - reference / white) ** 2))
+    return 10 * np.log10(1.0 / max(mse, 1e-12))
+
+
+def adaptive_and_chart(width: int = 48, height: int = 64) -> dict:
+    from hardware.studio.envmap_truth import _studio, frame_from_weights
+    from hardware.studio.subject import make_subject
+    from avatar.config import AvatarConfig
+    from scene.envmap import BackMask, read_envmap, select_adaptive, select_uniform
+    from scene.lights import DirectionalLight
+    from stages.relight.render import HeadRenderer
+
+    subject = make_subject("alice", 1)
+    frame = frame_from_weights(np.zeros(57))
+    cam = _camera(width, height)
+    model, verts = _model(AvatarConfig.tiny())
+    renderer = HeadRenderer(model, AvatarConfig.tiny().steps_per_ray, 16, "cpu")
+    geometry = renderer.geometry(verts)
+    per_map, chart, render_seconds = {}, {}, {}
+    for path in MAPS:
+        env = read_envmap(path)
+        mask = BackMask()
+        ref_lights = select_uniform(env, 2048, 0.0, mask)
+        reference = _studio(subject, None).render_lights(
+            frame, cam, [DirectionalLight(d, e) for d, e in zip(ref_lights.directions_world, ref_lights.irradiance_rgb)],
+            noise=False).rgb
+        start = time.perf_counter()
+        adaptive = select_adaptive(env, mask=mask)
+        select_s = time.perf_counter() - start
+        uniform = select_uniform(env, 256, 0.0, mask)
+        entry = {"adaptive_directions": len(adaptive), "adaptive_select_seconds": select_s,
+                 "adaptive_estimated_error": adaptive.estimated_error,
+                 "adaptive_psnr_db": _studio_psnr(subject, frame, cam, env, adaptive, reference),
+                 "uniform256_directions": len(uniform),
+                 "uniform256_psnr_db": _studio_psnr(subject, frame, cam, env, uniform, reference)}
+        start = time.perf_counter()
+        renderer.render_lights(geometry, cam, adaptive.positions_world(), adaptive.irradiance_rgb)
+        entry["adaptive_render_seconds"] = time.perf_counter() - start
+        per_map[env.name] = entry
+        print(f"{env.name:20s} adaptive {len(adaptive):4d} dirs {entry['adaptive_psnr_db']:6.2f} dB "
+              f"(select {select_s:.2f} s, render {entry['adaptive_render_seconds']:.2f} s) | "
+              f"uniform {len(uniform)} dirs {entry['uniform256_psnr_db']:6.2f} dB", flush=True)
+        if env.name in CHART_MAPS:
+            points = []
+            for count in (64, 128, 256, 512, 1024):
+                lights = select_uniform(env, count, 0.0, mask)
+                if count not in render_seconds:  # render time depends on the light count, not the map
+                    start = time.perf_counter()
+                    renderer.render_lights(geometry, cam, lights.positions_world(), lights.irradiance_rgb)
+                    render_seconds[count] = time.perf_counter() - start
+                points.append({"directions": len(lights), "render_seconds": render_seconds[count],
+                               "psnr_db": _studio_psnr(subject, frame, cam, env, lights, reference)})
+            chart[env.name] = points
+    _plot(chart, per_map)
+    return {"maps": per_map, "chart": chart}
+
+
+def _plot(chart: dict, per_map: dict) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for name, points in chart.items():
+        line, = ax.plot([p["render_seconds"] for p in points], [p["psnr_db"] for p in points], "o-", label=name)
+        for p in points:
+            ax.annotate(str(p["directions"]), (p["render_seconds"], p["psnr_db"]), fontsize=6)
+        a = per_map[name]
+        ax.plot([a["adaptive_render_seconds"]], [a["adaptive_psnr_db"]], "*", ms=10, color=line.get_color())
+    ax.set_xscale("log")
+    ax.set_xlabel("render time per frame, s (tiny model, CPU; voxel-space sum)")
+    ax.set_ylabel("PSNR vs 2048 directions, dB (studio truth)")
+    ax.set_title("Envmap directions: quality vs time (stars: adaptive)")
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(OUT / "relight_psnr_vs_time.png", dpi=120)
+    plt.close(fig)
+
+
+def main() -> None:
+    from avatar.config import AvatarConfig
+
+    torch.set_num_threads(2)
+    OUT.mkdir(exist_ok=True)
+    results: dict = {}
+    results["tiny"] = time_fast_vs_naive(AvatarConfig.tiny(), "cpu", 48, 64, repeats=1)
+    print("tiny:", json.dumps(results["tiny"]), flush=True)
+    if torch.cuda.is_available():
+        results["paper"] = time_fast_vs_naive(AvatarConfig.paper(), "cuda", 768, 1024, repeats=3)
+        print("paper:", json.dumps(results["paper"]), flush=True)
+    else:
+        results["paper"] = {"note": "no CUDA device here: the paper configuration (N=64, M=16, 1024x768) is "
+                                    "timed only on a GPU"}
+        print("paper: skipped (no CUDA device)", flush=True)
+    results.update(adaptive_and_chart())
+    (OUT / "relight.json").write_text(json.dumps(results, indent=1))
+    print(f"wrote {OUT / 'relight.json'} and {OUT / 'relight_psnr_vs_time.png'}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,125 @@
+"""Training speed and memory of the relightable MVP head, tiny and paper configurations.
+
+Figures: training iterations per second and peak memory (tiny preset's batch, and the
+paper's configuration: on a GPU at batch 12, on a CPU a few iterations at batch 1), and the
+time to render one image. The data are the rig's cameras around the ICT head with random
+targets: speed does not depend on image content. Writes ``bench-results/train.json``.
+Timings on a shared CPU are noisy.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import resource
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from avatar.config import AvatarConfig
+from avatar.layout import build_layout
+from avatar.model import RelightableMVP
+from avatar.raymarch import raymarch
+from scene.camera import Camera, look_at
+from scene.face_rig import load_face_rig
+from scene.rig import default_rig
+from stages.train.trainer import LossWeights, ModelTrainer, Renderer, TrainTensors
+
+
+def _tensors(width_px: int, frames: int, device: torch.device) -> tuple[TrainTensors, np.ndarray, np.ndarray]:
+    rig, face = default_rig(), load_face_rig()
+    verts = face.vertices()
+    cams = []
+    for spec in rig.cameras:
+        cam = Camera(spec.name, rig.width_px, rig.height_px, spec.focal_px, spec.focal_px,
+                     rig.width_px / 2 - 0.5, rig.height_px / 2 - 0.5,
+                     cam_from_world=look_at(np.array(spec.position_m), np.array(spec.look_at_m)))
+        cams.append(cam.scaled(width_px / rig.width_px))
+    h, w = cams[0].height, cams[0].width
+    rays = [c.image_rays() for c in cams]
+    ro = torch.as_tensor(np.stack([r[0] for r in rays]).reshape(1, len(cams), h * w, 3), dtype=torch.float32)
+    rd = torch.as_tensor(np.stack([r[1] for r in rays]).reshape(1, len(cams), h * w, 3), dtype=torch.float32)
+    g = torch.Generator().manual_seed(0)
+    t = TrainTensors(
+        images=torch.rand(frames, len(cams), h * w, 3, generator=g).to(device),
+        mattes=torch.ones(frames, len(cams), h * w).to(device),
+        rays_o=ro.expand(frames, -1, -1, -1).contiguous().to(device),
+        rays_d=rd.expand(frames, -1, -1, -1).contiguous().to(device),
+        pixel_weights=torch.ones(frames, len(cams), h * w),
+        cam_pos=torch.as_tensor(np.stack([c.center_world for c in cams]), dtype=torch.float32)[None]
+        .expand(frames, -1, -1).contiguous().to(device),
+        light_pos=torch.tensor([[0.5, 0.3, 1.0]]).expand(frames, -1).contiguous().to(device),
+        bar=torch.zeros(frames, dtype=torch.long, device=device),
+        guide_vertices=torch.zeros(0), height=h, width=w)
+    return t, verts, face.triangles
+
+
+def _measure(config: AvatarConfig, width_px: int, batch: int, rays: int, iterations: int,
+             device: torch.device, render: bool = True) -> dict[str, float]:
+    t, verts, tris = _tensors(width_px, 2, device)
+    layout = build_layout(verts, tris, config.prims_per_side, config.layout_theta_deg, config.prim_overlap)
+    t.guide_vertices = torch.as_tensor(verts[layout.guide_vertex_ids])[None].expand(2, -1, -1).contiguous().to(device)
+    torch.manual_seed(0)
+    model = RelightableMVP(config, layout, num_bars=1).to(device)
+    renderer = Renderer(model, "ours", None, [0])
+    tr = ModelTrainer(renderer, t, np.arange(2), iterations=iterations, batch_size=batch, rays_per_image=rays,
+                      lr=1e-4, weights=LossWeights(), seed=0, ckpt_path=Path("/nonexistent"), checkpoint_every=10 ** 9,
+                      spike_factor=1e9, log=logging.getLogger("bench"))
+    tr.step()  # warm-up
+    if device.type == "cuda":
+        torch.cuda.synchronize()
+        torch.cuda.reset_peak_memory_stats()
+    start = time.perf_counter()
+    for _ in range(iterations):
+        tr.step()
+    if device.type == "cuda":
+        torch.cuda.synchronize()
+    seconds = time.perf_counter() - start
+    out = {"iterations_per_second": iterations / seconds, "batch": batch, "rays_per_image": rays,
+           "peak_memory_mb": (torch.cuda.max_memory_allocated() / 2 ** 20 if device.type == "cuda"
+                              else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0)}
+    if render:
+        with torch.no_grad():
+            start = time.perf_counter()
+            mu, _ = model.encode(t.guide_vertices[:1])
+            geo = model.decode_geometry(mu)
+            rgb = model.decode_rgb(geo, t.cam_pos[:1, 0], t.light_pos[:1])
+            raymarch(geo.primitives(rgb), t.rays_o[:1, 0], t.rays_d[:1, 0], config.steps_per_ray)
+            if device.type == "cuda":
+                torch.cuda.synchronize()
+            out["render_seconds_per_image"] = time.perf_counter() - start
+            out["render_width_px"], out["render_height_px"] = t.width, t.height
+    return out
+
+
+def main() -> dict:
+    cuda = torch.cuda.is_available()
+    device = torch.device("cuda" if cuda else "cpu")
+    results: dict = {"device": torch.cuda.get_device_name() if cuda else "cpu",
+                     "threads": torch.get_num_threads()}
+    tiny = _measure(AvatarConfig.tiny(), 64, batch=4, rays=256, iterations=10, device=device)
+    results["tiny"] = tiny
+    print(f"tiny  (N=16, M=8, batch 4 x 256 rays, {tiny['render_width_px']}x{tiny['render_height_px']} px): "
+          f"{tiny['iterations_per_second']:.2f} it/s, peak {tiny['peak_memory_mb']:.0f} MB, "
+          f"render {tiny['render_seconds_per_image'] * 1000:.0f} ms/image")
+    if cuda:
+        paper = _measure(AvatarConfig.paper(), 768, batch=12, rays=4096, iterations=10, device=device)
+        note = "GPU, batch 12 (the paper: ~1.2 it/s on an A6000)"
+    else:
+        paper = _measure(AvatarConfig.paper(), 96, batch=1, rays=512, iterations=2, device=device, render=False)
+        note = "CPU, batch 1 x 512 rays, 2 iterations only (the paper's batch 12 needs a GPU)"
+    paper["note"] = note
+    results["paper"] = paper
+    print(f"paper (N=64, M=16, {note}): {paper['iterations_per_second']:.3f} it/s, "
+          f"peak {paper['peak_memory_mb']:.0f} MB"
+          + (f", render {paper['render_seconds_per_image']:.2f} s/image" if "render_seconds_per_image" in paper else ""))
+    out = Path("bench-results")
+    out.mkdir(exist_ok=True)
+    (out / "train.json").write_text(json.dumps(results, indent=1))
+    return results
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,135 @@
+"""``pipeline hw``: talk to the LED controller from a shell.
+
+    pipeline hw ping --port /dev/ttyUSB0
+    pipeline hw upload --port /dev/ttyUSB0 --sequence sequence.json [--arm]
+    pipeline hw status --port /dev/ttyUSB0
+    pipeline hw log --port /dev/ttyUSB0
+    pipeline hw emulate [--bars 32] [--seconds 0]
+
+``emulate`` starts an emulated controller on a pty and prints its port, so the other
+commands (or any serial terminal) can be tried without a rig.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+from hardware.led import ControllerError, LedController, LedEmulator
+from hardware.led.protocol import light_token
+
+
+def _add_port_args(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--port", required=True, help="serial device or pyserial URL, e.g. /dev/ttyUSB0")
+    parser.add_argument("--timeout", type=float, default=0.5, help="seconds to wait for each reply")
+    parser.add_argument("--retries", type=int, default=2, help="resends after a timeout or corrupt reply")
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="pipeline hw", description="LED-bar controller tools.")
+    commands = parser.add_subparsers(dest="command", required=True)
+    ping = commands.add_parser("ping", help="check the controller answers; print its firmware")
+    _add_port_args(ping)
+    ping.add_argument("--count", type=int, default=3, help="pings to send")
+    upload = commands.add_parser("upload", help="upload a sequence, read it back, verify its checksum")
+    _add_port_args(upload)
+    upload.add_argument("--sequence", required=True, type=Path, help="sequence.json of the sequence stage")
+    upload.add_argument("--arm", action="store_true", help="arm the program after verifying it")
+    status = commands.add_parser("status", help="print the controller's state")
+    _add_port_args(status)
+    log = commands.add_parser("log", help="print the controller's pulse log as JSON lines")
+    _add_port_args(log)
+    emulate = commands.add_parser("emulate", help="serve an emulated controller on a pty and print its port")
+    emulate.add_argument("--bars", type=int, default=32, help="LED bars on the emulated board")
+    emulate.add_argument("--seconds", type=float, default=0.0, help="stop after this long (0: until Ctrl-C)")
+    return parser
+
+
+def _load_sequence(path: Path) -> tuple[list, int, str | None]:
+    try:
+        sequence = json.loads(path.read_text())
+        pattern, cycles = sequence["pattern"], int(sequence["cycles"])
+    except FileNotFoundError as err:
+        raise ValueError(f"{path}: no such file; pass the sequence stage's sequence.json") from err
+    except (json.JSONDecodeError, KeyError, TypeError, ValueError) as err:
+        raise ValueError(f"{path}: not a sequence file (needs 'pattern' and 'cycles'): {err}") from err
+    for light in pattern:
+        light_token(light)  # raises ValueError naming the bad light
+    return pattern, cycles, sequence.get("program_crc32")
+
+
+def _ping(args: argparse.Namespace) -> int:
+    with LedController(args.port, args.timeout, args.retries) as controller:
+        info = controller.version()
+        times_ms = [controller.ping() * 1e3 for _ in range(max(1, args.count))]
+    print(f"{args.port}: {info.firmware} {info.version}, protocol {info.protocol}, {info.bars} bars; "
+          f"round trip {min(times_ms):.2f}-{max(times_ms):.2f} ms")
+    return 0
+
+
+def _upload(args: argparse.Namespace) -> int:
+    pattern, cycles, expected_crc = _load_sequence(args.sequence)
+    with LedController(args.port, args.timeout, args.retries) as controller:
+        crc = controller.upload(pattern, cycles)
+        controller.verify_program(pattern, cycles)
+        if expected_crc is not None and expected_crc != crc:
+            print(f"error: {args.sequence} says program_crc32 {expected_crc}, the controller holds {crc}; "
+                  f"re-run the sequence stage", file=sys.stderr)
+            return 1
+        if args.arm:
+            controller.arm(crc)
+    print(f"{args.port}: uploaded {len(pattern)} steps x {cycles} cycles, read back and verified, "
+          f"crc32 {crc}{', armed' if args.arm else ''}")
+    return 0
+
+
+def _status(args: argparse.Namespace) -> int:
+    with LedController(args.port, args.timeout, args.retries) as controller:
+        status = controller.status()
+    print(json.dumps(status.__dict__))
+    return 0
+
+
+def _log(args: argparse.Namespace) -> int:
+    with LedController(args.port, args.timeout, args.retries) as controller:
+        for entry in controller.read_log():
+            print(json.dumps(entry.to_json()))
+    return 0
+
+
+def _emulate(args: argparse.Namespace) -> int:
+    with LedEmulator(n_bars=args.bars) as emulator:
+        print(emulator.port, flush=True)
+        print(f"emulated LED controller ({args.bars} bars) on {emulator.port}; Ctrl-C to stop",
+              file=sys.stderr, flush=True)
+        deadline = time.monotonic() + args.seconds if args.seconds > 0 else None
+        try:
+            while deadline is None or time.monotonic() < deadline:
+                time.sleep(0.1)
+        except KeyboardInterrupt:
+            pass
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of ``pipeline hw``; returns the exit code (0 ok, 1 device error, 2 usage)."""
+    try:
+        args = _parser().parse_args(argv)
+    except SystemExit as exit_:  # argparse exits on --help and on bad usage; return its code
+        return int(exit_.code or 0)
+    handlers = {"ping": _ping, "upload": _upload, "status": _status, "log": _log, "emulate": _emulate}
+    try:
+        return handlers[args.command](args)
+    except ControllerError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 1
+    except ValueError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,483 @@
+"""The virtual studio's calibration takes: a ChArUco board and mirror spheres.
+
+Both are ray-cast through ``scene.camera.Camera.pixel_rays``, so lens distortion in the
+images is exactly the camera model's. Output layout (TEAM.md, capture object)::
+
+    calib/board.json                     board spec + the reference (fixture) pose of frame 0
+    calib/charuco/<cam>/<k:04d>.exr      board pose k as seen by <cam> (absent: board not in view)
+    calib/mirror.json                    sphere spec {"radius_m", "count", ...}
+    calib/mirror/<cam>/room.exr          spheres under the room light, bars off (silhouettes)
+    calib/mirror/<cam>/bar<b:02d>.exr    spheres lit by bar b alone
+
+Ground truth (the board poses, the sphere centres) goes to ``truth_dir`` as
+``calib_board_poses.json`` and ``mirror_spheres.json``.
+
+Board frame (OpenCV's ChArUco convention): origin at the chessboard's top-left corner,
+x along the squares to the right, y down the printed page, z into the board; a camera
+looking at the printed side sees the board's +z pointing away from it.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+from scipy.ndimage import gaussian_filter
+from scipy.spatial.transform import Rotation
+
+from scene.camera import Camera, Rigid
+from scene.image_io import write_exr
+
+
+class CharucoBoardConfig(BaseModel):
+    """The printed ChArUco board (OpenCV ``cv2.aruco.CharucoBoard``)."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+    squares_x: int = Field(8, ge=3, description="Chessboard squares along the board's x axis.")
+    squares_y: int = Field(6, ge=3, description="Chessboard squares along the board's y axis.")
+    square_m: float = Field(0.04, gt=0, description="Side of one chessboard square in metres.")
+    marker_m: float = Field(0.029, gt=0, description="Side of one ArUco marker in metres (< square_m).")
+    dictionary: str = Field("DICT_4X4_50", description="OpenCV ArUco dictionary name (cv2.aruco.<name>).")
+
+    def spec(self) -> dict:
+        """The ``calib/board.json`` fields."""
+        return {"squares_x": self.squares_x, "squares_y": self.squares_y, "square_m": self.square_m,
+                "marker_m": self.marker_m, "dictionary": self.dictionary}
+
+
+class MirrorSpheresConfig(BaseModel):
+    """Chrome balls placed around the head position for the light calibration take."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+    radius_m: float = Field(0.035, gt=0, description="Radius of every chrome ball in metres.")
+    offsets_m: tuple[tuple[float, float, float], ...] = Field(
+        ((-0.11, -0.06, 0.05), (0.11, -0.06, 0.05), (0.0, 0.14, -0.02), (0.0, 0.0, 0.13)),
+        description="Ball centres relative to the capture volume centre, metres (world axes).")
+    reflectance: float = Field(0.6, gt=0, le=1, description="Mirror reflectance of the chrome.")
+
+
+class CalibrationTakeParams(BaseModel):
+    """How the calibration takes are shot."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+    poses: int = Field(24, ge=2, description="Board poses in the ChArUco take (pose 0 is the fixture pose).")
+    noise: float = Field(0.003, ge=0, description="Sensor noise, standard deviation in linear units.")
+    blur_px: float = Field(0.5, ge=0, description="Optical blur, Gaussian sigma in pixels.")
+    seed: int = Field(0, description="Random seed for board poses and noise.")
+    supersample: int = Field(3, ge=1, le=8, description="Rays per pixel per axis for board images.")
+    mirror_supersample: int = Field(4, ge=1, le=12, description="Rays per pixel per axis on the spheres.")
+    highlight_supersample: int = Field(
+        24, ge=1, le=64, description="Rays per pixel per axis where a bar's highlight falls (a sub-pixel streak).")
+    volume_center_m: tuple[float, float, float] = Field(
+        (0.0, 0.0, 0.0), description="Centre of the capture volume (the head position), world metres.")
+    volume_half_extent_m: tuple[float, float, float] = Field(
+        (0.1, 0.12, 0.15), description="Half size of the box the board centre moves in, metres.")
+    max_tilt_deg: float = Field(35.0, ge=0, le=70, description="Largest board tilt away from its facing direction.")
+    board_albedo_white: float = Field(0.75, gt=0, le=1, description="Linear albedo of the white print.")
+    board_albedo_black: float = Field(0.03, ge=0, lt=1, description="Linear albedo of the black print.")
+    exposure: float = Field(1.0, gt=0, description="Full-on irradiance scale for the board take.")
+    bar_radiance: float = Field(4.0, gt=0, description="Radiance of a lit bar (times its intensity).")
+    bar_width_m: float = Field(0.03, gt=0, description="Width of a bar's diffuser, metres.")
+    room_radiance: float = Field(0.15, ge=0, description="Room light seen in the spheres in the silhouette take.")
+    background: float = Field(0.01, ge=0, description="Radiance of the black backdrop.")
+    white_level: float = Field(1.0, gt=0, description="Sensor saturation level (linear); images are clipped to it.")
+
+
+@dataclass(frozen=True)
+class BarLight:
+    """One LED bar as the calibration take needs it (world metres)."""
+
+    id: int
+    center_world: np.ndarray  # [3]
+    axis_world: np.ndarray  # [3] unit
+    length_m: float
+    intensity: float = 1.0
+    normal_world: np.ndarray | None = None  # [3] emission direction; None: lit on both sides
+
+
+# ---- board -----------------------------------------------------------------------------
+
+def make_board(cfg: CharucoBoardConfig):
+    """The OpenCV board object for a board spec."""
+    import cv2
+
+    dictionary = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, cfg.dictionary))
+    return cv2.aruco.CharucoBoard((cfg.squares_x, cfg.squares_y), cfg.square_m, cfg.marker_m, dictionary)
+
+
+def board_texture(cfg: CharucoBoardConfig, px_per_square: int = 48) -> tuple[np.ndarray, int]:
+    """The printed board as a float albedo mask in [0, 1] [Ht, Wt] (1 = white) and its margin in pixels.
+
+    The margin is white paper around the chessboard (half a square), as on a real print.
+    """
+    margin = px_per_square // 2
+    size = (cfg.squares_x * px_per_square + 2 * margin, cfg.squares_y * px_per_square + 2 * margin)
+    img = make_board(cfg).generateImage(size, marginSize=margin, borderBits=1)
+    return img.astype(np.float32) / 255.0, margin
+
+
+def reference_world_from_board(cfg: CharucoBoardConfig, center_world: np.ndarray) -> Rigid:
+    """The fixture pose: board upright, printed side facing +z (towards the cameras), centred at ``center_world``.
+
+    Board x = world +x, board y = world -y (down the page), board z = world -z.
+    """
+    R = np.diag([1.0, -1.0, -1.0])
+    half = np.array([cfg.squares_x * cfg.square_m / 2, cfg.squares_y * cfg.square_m / 2, 0.0])
+    return Rigid(R, np.asarray(center_world, float) - R @ half)
+
+
+def sample_board_poses(cfg: CharucoBoardConfig, cameras: Sequence[Camera], params: CalibrationTakeParams,
+                       rng: np.random.Generator) -> list[Rigid]:
+    """Board poses ``world_from_board``: pose 0 at the fixture, the rest facing random camera groups.
+
+    The facing direction is drawn within the cameras' azimuth/elevation range (seen from the
+    volume centre), then tilted by up to ``max_tilt_deg`` and spun in plane, so every camera
+    sees the board often and at varied angles (what makes focal length observable).
+    """
+    centre = np.asarray(params.volume_center_m, float)
+    half_ext = np.asarray(params.volume_half_extent_m, float)
+    to_cams = np.stack([c.center_world - centre for c in cameras])
+    az = np.arctan2(to_cams[:, 0], to_cams[:, 2])
+    el = np.arctan2(to_cams[:, 1], np.linalg.norm(to_cams[:, [0, 2]], axis=1))
+    poses = [reference_world_from_board(cfg, centre)]
+    half = np.array([cfg.squares_x * cfg.square_m / 2, cfg.squares_y * cfg.square_m / 2, 0.0])
+    while len(poses) < params.poses:
+        i = rng.integers(len(cameras))  # face one camera, jittered: covers every camera evenly
+        yaw = az[i] + rng.uniform(-0.35, 0.35)
+        pitch = el[i] + rng.uniform(-0.3, 0.3)
+        facing = np.array([np.sin(yaw) * np.cos(pitch), np.sin(pitch), np.cos(yaw) * np.cos(pitch)])
+        tilt_axis = np.cross(facing, rng.normal(size=3))
+        tilt_axis /= np.linalg.norm(tilt_axis)
+        tilt = np.deg2rad(rng.uniform(0.3, 1.0) * params.max_tilt_deg)
+        facing = Rotation.from_rotvec(tilt_axis * tilt).apply(facing)
+        # board z points away from the viewer: -facing; board y down the page ~ world -y
+        z = -facing
+        x = np.cross(np.array([0.0, -1.0, 0.0]), z)
+        x /= np.linalg.norm(x)
+        y = np.cross(z, x)
+        R = np.stack([x, y, z], axis=1)
+        spin = Rotation.from_rotvec(z * np.deg2rad(rng.uniform(-25, 25))).as_matrix()
+        R = spin @ R
+        c = centre + rng.uniform(-1, 1, size=3) * half_ext
+        poses.append(Rigid(R, c - R @ half))
+    return poses
+
+
+def _supersampled_rays(cam: Camera, ss: int, box: tuple[int, int, int, int] | None = None
+                       ) -> tuple[np.ndarray, np.ndarray]:
+    """Rays at ``ss x ss`` sub-pixel positions of every pixel in ``box`` (x0, y0, x1, y1, exclusive ends).
+
+    Returns origins [3] and directions [h, w, ss*ss, 3] (float64).
+    """
+    x0, y0, x1, y1 = box if box is not None else (0, 0, cam.width, cam.height)
+    offs = (np.arange(ss) + 0.5) / ss - 0.5
+    jj, ii = np.meshgrid(np.arange(x0, x1, dtype=np.float64), np.arange(y0, y1, dtype=np.float64))
+    oy, ox = np.meshgrid(offs, offs, indexing="ij")
+    uv = np.stack([jj[..., None] + ox.ravel(), ii[..., None] + oy.ravel()], axis=-1)  # [h, w, S, 2]
+    _, dirs = cam.pixel_rays(uv)
+    return cam.center_world, dirs
+
+
+def _bilinear(tex: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Sample ``tex`` [Ht, Wt] at continuous pixel-centre coordinates (u along x); clamps at the border."""
+    h, w = tex.shape
+    u = np.clip(u, 0, w - 1.001)
+    v = np.clip(v, 0, h - 1.001)
+    u0 = np.floor(u).astype(np.int64)
+    v0 = np.floor(v).astype(np.int64)
+    fu, fv = u - u0, v - v0
+    return ((tex[v0, u0] * (1 - fu) + tex[v0, u0 + 1] * fu) * (1 - fv)
+            + (tex[v0 + 1, u0] * (1 - fu) + tex[v0 + 1, u0 + 1] * fu) * fv)
+
+
+def _sensor(img: np.ndarray, params: CalibrationTakeParams, rng: np.random.Generator) -> np.ndarray:
+    """Optics and sensor: blur, noise, clip at the white level; grey -> RGB [H, W, 3]."""
+    if params.blur_px > 0:
+        img = gaussian_filter(img, params.blur_px, mode="nearest")
+    img = img + rng.normal(0.0, params.noise, size=img.shape) if params.noise > 0 else img
+    img = np.clip(img, 0.0, params.white_level)
+    return np.repeat(img[..., None], 3, axis=-1).astype(np.float32)
+
+
+def render_board_image(cam: Camera, world_from_board: Rigid, cfg: CharucoBoardConfig, tex: np.ndarray,
+                       margin_px: int, params: CalibrationTakeParams, rng: np.random.Generator,
+                       rays: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+    """One board image [H, W, 3] (linear), anti-aliased by supersampling, then blurred and noised."""
+    origin, all_dirs = rays if rays is not None else _supersampled_rays(cam, params.supersample)
+    R, t = world_from_board.R, world_from_board.t
+    # only the pixels the board (with its white margin) can cover need ray casting
+    pad = 0.5 * cfg.square_m
+    outline = np.array([[-pad, -pad, 0], [cfg.squares_x * cfg.square_m + pad, -pad, 0],
+                        [cfg.squares_x * cfg.square_m + pad, cfg.squares_y * cfg.square_m + pad, 0],
+                        [-pad, cfg.squares_y * cfg.square_m + pad, 0]])
+    uv, z = cam.project(world_from_board.apply(outline))
+    x0, y0, x1, y1 = 0, 0, cam.width, cam.height
+    if np.all(z > 0):
+        x0, y0 = np.maximum(np.floor(uv.min(axis=0)).astype(int) - 4, 0)
+        x1, y1 = np.minimum(np.ceil(uv.max(axis=0)).astype(int) + 5, [cam.width, cam.height])
+    clean = np.full((cam.height, cam.width), params.background, np.float64)
+    if x1 > x0 and y1 > y0:
+        dirs = all_dirs[y0:y1, x0:x1]
+        normal = R[:, 2]  # board +z, into the board
+        denom = dirs @ normal  # [h, w, S]; > 0: the ray meets the printed side
+        dist = ((t - origin) @ normal) / np.where(np.abs(denom) < 1e-12, 1e-12, denom)
+        hit = origin + dist[..., None] * dirs
+        p_board = (hit - t) @ R  # [h, w, S, 3]
+        px_per_square = (tex.shape[1] - 2 * margin_px) / cfg.squares_x
+        u = margin_px + p_board[..., 0] / cfg.square_m * px_per_square - 0.5
+        v = margin_px + p_board[..., 1] / cfg.square_m * px_per_square - 0.5
+        inside = (dist > 0) & (u >= -0.5) & (v >= -0.5) & (u <= tex.shape[1] - 0.5) & (v <= tex.shape[0] - 0.5)
+        albedo = (params.board_albedo_black
+                  + (params.board_albedo_white - params.board_albedo_black) * _bilinear(tex, u, v))
+        shading = params.exposure * (0.75 + 0.25 * np.abs(denom))  # soft full-on light, a little Lambert
+        radiance = np.where(inside & (denom > 0), albedo * shading, np.where(inside, 0.05, params.background))
+        clean[y0:y1, x0:x1] = radiance.mean(axis=-1)
+    return _sensor(clean, params, rng)
+
+
+def board_visible(cam: Camera, world_from_board: Rigid, cfg: CharucoBoardConfig, min_corners: int = 6) -> bool:
+    """Whether the printed side faces ``cam`` and at least ``min_corners`` inner corners fall in its image."""
+    board = make_board(cfg)
+    corners_world = world_from_board.apply(np.asarray(board.getChessboardCorners(), float))
+    to_cam = cam.center_world - corners_world.mean(axis=0)
+    if to_cam @ world_from_board.R[:, 2] >= 0:  # looking at the back of the board
+        return False
+    uv, z = cam.project(corners_world)
+    ok = (z > 0) & (uv[:, 0] >= 2) & (uv[:, 1] >= 2) & (uv[:, 0] < cam.width - 3) & (uv[:, 1] < cam.height - 3)
+    return int(ok.sum()) >= min_corners
+
+
+# ---- mirror spheres -----------------------------------------------------------------------
+
+def _ray_segment_distance(origins: np.ndarray, dirs: np.ndarray, a: np.ndarray, b: np.ndarray
+                          ) -> np.ndarray:
+    """Closest distance between rays ``origins + t dirs`` (t >= 0, dirs unit) [N, 3] and segment a-b; [N]."""
+    seg = b - a
+    seg_len2 = float(seg @ seg)
+    w0 = origins - a  # [N, 3]
+    bb = dirs @ seg  # [N]
+    dd = (dirs * w0).sum(-1)
+    ee = w0 @ seg
+    denom = np.maximum(seg_len2 - bb * bb, 1e-12)
+    s = np.clip((ee - bb * dd) / denom, 0.0, 1.0)
+    t = np.maximum(s * bb - dd, 0.0)  # the ray point closest to a + s*seg
+    s = np.clip(((origins + t[:, None] * dirs - a) @ seg) / seg_len2, 0.0, 1.0)  # re-clamp the segment side
+    t = np.maximum(s * bb - dd, 0.0)
+    return np.linalg.norm(origins + t[:, None] * dirs - (a + s[:, None] * seg), axis=-1)
+
+
+def sphere_pixel_box(cam: Camera, center_world: np.ndarray, radius_m: float, pad_px: int = 3
+                     ) -> tuple[int, int, int, int] | None:
+    """Pixel box (x0, y0, x1, y1) that holds the sphere's image, or None if it is not in view."""
+    golden = np.pi * (3.0 - np.sqrt(5.0))
+    k = np.arange(400)
+    zs = 1 - 2 * (k + 0.5) / 400
+    rs = np.sqrt(1 - zs * zs)
+    pts = np.stack([rs * np.cos(golden * k), zs, rs * np.sin(golden * k)], -1) * radius_m + center_world
+    uv, z = cam.project(pts)
+    if np.any(z <= radius_m * 0.1):
+        return None
+    x0, y0 = np.floor(uv.min(axis=0)).astype(int) - pad_px
+    x1, y1 = np.ceil(uv.max(axis=0)).astype(int) + pad_px + 1
+    x0, y0, x1, y1 = max(x0, 0), max(y0, 0), min(x1, cam.width), min(y1, cam.height)
+    if x1 <= x0 or y1 <= y0:
+        return None
+    return int(x0), int(y0), int(x1), int(y1)
+
+
+def _bar_profile(dist_m: np.ndarray, width_m: float) -> np.ndarray:
+    """Diffuser profile across a bar: 1 on its axis, falling smoothly to 0 at half its width."""
+    return np.clip(1.0 - (dist_m / (0.5 * width_m)) ** 2, 0.0, None)
+
+
+def _sphere_hits(origin: np.ndarray, d: np.ndarray, centres: np.ndarray, r: float
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Nearest ball hit of rays ``d`` [N, 3] (another ball may be in front of this one).
+
+    Returns the hit mask [N], hit points [M, 3] and reflected directions [M, 3].
+    """
+    best_t = np.full(d.shape[0], np.inf)
+    best_c = np.zeros((d.shape[0], 3))
+    for other in centres:
+        oc = origin - other
+        b = d @ oc
+        disc = b * b - (oc @ oc - r * r)
+        t = np.where(disc >= 0, -b - np.sqrt(np.maximum(disc, 0.0)), np.inf)
+        t = np.where(t > 0, t, np.inf)
+        closer = t < best_t
+        best_t = np.where(closer, t, best_t)
+        best_c[closer] = other
+    hit = np.isfinite(best_t)
+    p = origin + best_t[hit, None] * d[hit]
+    n = (p - best_c[hit]) / r
+    refl = d[hit] - 2 * (d[hit] * n).sum(-1, keepdims=True) * n
+    return hit, p, refl
+
+
+def _bar_radiance(bar: BarLight, p: np.ndarray, refl: np.ndarray, params: CalibrationTakeParams) -> np.ndarray:
+    """Radiance of ``bar`` seen along reflected rays ``p + t refl`` [M, 3] -> [M]."""
+    half = 0.5 * bar.length_m * np.asarray(bar.axis_world, float)
+    c = np.asarray(bar.center_world, float)
+    dist = _ray_segment_distance(p, refl, c - half, c + half)
+    light = params.bar_radiance * bar.intensity * _bar_profile(dist, params.bar_width_m)
+    normal = getattr(bar, "normal_world", None)
+    if normal is not None:  # a bar's diffuser is dark from behind
+        light = light * (refl @ np.asarray(normal, float) < 0)
+    return light
+
+
+def _pixel_rays_at(cam: Camera, pixels: np.ndarray, ss: int) -> np.ndarray:
+    """Directions of ``ss x ss`` sub-pixel rays for pixels [M, 2] (x, y) -> [M, ss*ss, 3]."""
+    offs = (np.arange(ss) + 0.5) / ss - 0.5
+    oy, ox = np.meshgrid(offs, offs, indexing="ij")
+    uv = pixels[:, None, :].astype(np.float64) + np.stack([ox.ravel(), oy.ravel()], -1)[None]
+    return cam.pixel_rays(uv)[1]
+
+
+def render_mirror_images(cam: Camera, sphere_centers_world: np.ndarray, spheres: MirrorSpheresConfig,
+                         bars: Sequence[BarLight], params: CalibrationTakeParams, rng: np.random.Generator
+                         ) -> dict[str, np.ndarray]:
+    """The mirror-sphere take for one camera: ``{"room": img, "bar00": img, ...}``, each [H, W, 3] linear.
+
+    A sphere reflects the bar (a diffuser of ``bar_width_m`` around its segment); ``room``
+    is the balls under uniform room light with the bars off, so their silhouettes show.
+    Inter-reflections are ignored. A bar's highlight is a thin streak (a fraction of a
+    pixel wide), so its pixels are rendered again with ``highlight_supersample`` rays per
+    axis: with too few sub-pixel rays its position snaps to the sub-pixel grid.
+    """
+    import cv2
+
+    ss = params.mirror_supersample
+    r = spheres.radius_m
+    names = ["room"] + [f"bar{b.id:02d}" for b in bars]
+    clean = {n: np.full((cam.height, cam.width), params.background, np.float64) for n in names}
+    for centre in sphere_centers_world:
+        box = sphere_pixel_box(cam, centre, r)
+        if box is None:
+            continue
+        x0, y0, x1, y1 = box
+        origin, dirs = _supersampled_rays(cam, ss, box)
+        shape = dirs.shape[:-1]  # [h, w, S]
+        hit, p, refl = _sphere_hits(origin, dirs.reshape(-1, 3), sphere_centers_world, r)
+        room = np.full(hit.shape, params.background)
+        room[hit] = spheres.reflectance * params.room_radiance
+        clean["room"][y0:y1, x0:x1] = room.reshape(shape).mean(axis=-1)
+        for bar in bars:
+            radiance = np.full(hit.shape, params.background)
+            radiance[hit] = spheres.reflectance * _bar_radiance(bar, p, refl, params)
+            radiance = radiance.reshape(shape)
+            img = radiance.mean(axis=-1)
+            lit = (radiance > params.background).any(axis=-1).astype(np.uint8)
+            lit = cv2.dilate(lit, np.ones((3, 3), np.uint8)).astype(bool)
+            if lit.any():
+                ys, xs = np.nonzero(lit)
+                fine = _pixel_rays_at(cam, np.stack([xs + x0, ys + y0], -1), params.highlight_supersample)
+                fhit, fp, frefl = _sphere_hits(origin, fine.reshape(-1, 3), sphere_centers_world, r)
+                fr = np.full(fhit.shape, params.background)
+                fr[fhit] = spheres.reflectance * _bar_radiance(bar, fp, frefl, params)
+                img[ys, xs] = fr.reshape(len(ys), -1).mean(axis=-1)
+            clean[f"bar{bar.id:02d}"][y0:y1, x0:x1] = img
+    return {n: _sensor(img, params, rng) for n, img in clean.items()}
+
+
+# ---- the take ---------------------------------------------------------------------------
+
+def _rigid_dict(x: Rigid) -> dict:
+    return {"R": x.R.tolist(), "t": x.t.tolist()}
+
+
+def render_calibration_takes(cameras: Sequence[Camera], bars: Sequence[BarLight], out_dir: Path,
+                             truth_dir: Path, params: CalibrationTakeParams,
+                             board: CharucoBoardConfig = CharucoBoardConfig(),
+                             spheres: MirrorSpheresConfig = MirrorSpheresConfig(),
+                             progress=None) -> None:
+    """Render the board and mirror-sphere takes for every camera into ``out_dir/calib``.
+
+    Args:
+        cameras: the true cameras (the studio's, with distortion).
+        bars: the true LED bars.
+        out_dir: the capture object's folder; ``calib/`` is written inside it.
+        truth_dir: the capture truth folder; board poses and sphere centres go there.
+        params: take settings (poses, noise, ...).
+        board, spheres: the board print and the chrome balls.
+        progress: optional ``Progress`` advanced once per camera and take.
+    """
+    out_dir, truth_dir = Path(out_dir), Path(truth_dir)
+    calib = out_dir / "calib"
+    calib.mkdir(parents=True, exist_ok=True)
+    truth_dir.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(params.seed)
+    poses = sample_board_poses(board, cameras, params, rng)
+    tex, margin = board_texture(board)
+    ref = poses[0]
+    (calib / "board.json").write_text(json.dumps({
+        **board.spec(), "poses": len(poses), "reference_pose_index": 0,
+        "world_from_board_reference": _rigid_dict(ref),
+        "note": "pose 0 is shot with the board in its fixture: its known pose defines the world frame",
+    }, indent=1))
+    (truth_dir / "calib_board_poses.json").write_text(json.dumps(
+        {"world_from_board": [_rigid_dict(p) for p in poses]}, indent=1))
+    centre = np.asarray(params.volume_center_m, float)
+    sphere_centers = centre + np.asarray(spheres.offsets_m, float)
+    (calib / "mirror.json").write_text(json.dumps({
+        "radius_m": spheres.radius_m, "count": len(sphere_centers), "silhouette_image": "room.exr",
+        "bars": [int(b.id) for b in bars]}, indent=1))
+    (truth_dir / "mirror_spheres.json").write_text(json.dumps(
+        {"radius_m": spheres.radius_m, "centers_world": sphere_centers.tolist()}, indent=1))
+    for ci, cam in enumerate(cameras):
+        cam_rng = np.random.default_rng([params.seed, ci])
+        rays = None
+        cdir = calib / "charuco" / cam.name
+        cdir.mkdir(parents=True, exist_ok=True)
+        for k, pose in enumerate(poses):
+            if not board_visible(cam, pose, board):
+                continue
+            if rays is None:
+                rays = _supersampled_rays(cam, params.supersample)
+            img = render_board_image(cam, pose, board, tex, margin, params, cam_rng, rays)
+            write_exr(cdir / f"{k:04d}.exr", img)
+        del rays
+        if progress is not None:
+            progress.advance(1)
+        mdir = calib / "mirror" / cam.name
+        mdir.mkdir(parents=True, exist_ok=True)
+        for name, img in render_mirror_images(cam, sphere_centers, spheres, bars, params, cam_rng).items():
+            write_exr(mdir / f"{name}.exr", img)
+        if progress is not None:
+            progress.advance(1)
+
+
+
+def takes_from_rig(rig) -> tuple[CharucoBoardConfig, MirrorSpheresConfig]:
+    """The board and ball settings of a ``scene.rig.RigConfig`` (its ``calibration`` section)."""
+    return (CharucoBoardConfig(**rig.calibration.get("board", {})),
+            MirrorSpheresConfig(**rig.calibration.get("mirror_spheres", {})))
+
+
+def render_rig_takes(out_dir: Path, truth_dir: Path, params: CalibrationTakeParams, scale: float = 0.3125,
+                     camera_names: Sequence[str] | None = None, bar_ids: Sequence[int] | None = None,
+                     rig=None) -> tuple[list[Camera], list[BarLight]]:
+    """Calibration takes of (a subset of) the studio rig, with the truth files the capture stage writes.
+
+    For benchmarks and tests that need a capture's ``calib/`` without the performance:
+    writes ``out_dir/calib`` and ``truth_dir`` (``cameras.json``, ``bars.json`` and the
+    take's own truth). Returns the true cameras and bars.
+    """
+    from scene.camera import save_cameras
+    from scene.rig import default_rig
+
+    rig = default_rig() if rig is None else rig
+    cameras = [c for c in rig.cameras_at(scale) if camera_names is None or c.name in camera_names]
+    light_bars = [b for b in rig.light_bars() if bar_ids is None or b.id in bar_ids]
+    bars = [BarLight(b.id, b.center_world, b.axis_world, b.length_m, b.intensity, b.normal_world)
+            for b in light_bars]
+    board, spheres = takes_from_rig(rig)
+    params = params.model_copy(update={"volume_center_m": tuple(rig.head_center_m)})
+    render_calibration_takes(cameras, bars, out_dir, truth_dir, params, board, spheres)
+    save_cameras(Path(truth_dir) / "cameras.json", cameras)
+    (Path(truth_dir) / "bars.json").write_text(json.dumps({"bars": [b.to_dict() for b in light_bars]}, indent=1))
+    return cameras, bars

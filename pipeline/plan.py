@@ -1,0 +1,163 @@
+"""Action keys and change explanations, shared by the runner, ``status`` and ``--dry-run``.
+
+A stage's action key is BLAKE3 over the canonical JSON of: its name, its code digest, its
+canonical params, the digests of its input objects and the digests of its external inputs.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from pipeline.dag import split_input
+from pipeline.errors import ConfigError, InputError
+from pipeline.hashing import hash_bytes, hash_path
+from pipeline.declcache import StageDecl
+from pipeline.project import Project, ResolvedParams
+from pipeline.workspace import Ref, Workspace
+
+OUT = "out"
+
+
+def output_name(input_name: str) -> tuple[str, str]:
+    """Input ``capture.truth`` -> (``capture``, ``truth``); ``capture`` -> (``capture``, ``out``)."""
+    base, extra = split_input(input_name)
+    return base, extra or OUT
+
+
+def external_paths(params: ResolvedParams) -> list[Path]:
+    """The stage's declared external inputs as absolute paths (relative ones: from the cwd)."""
+    return [Path(os.path.abspath(Path(raw).expanduser())) for raw in params.external]
+
+
+def external_digests(name: str, params: ResolvedParams, ws: Workspace) -> dict[str, str]:
+    """path -> content digest of each external input (the stat cache spares unchanged files)."""
+    digests = {}
+    paths = external_paths(params)
+    if not paths:
+        return digests
+    cache = ws.stat_cache()
+    try:
+        for path in paths:
+            if not path.exists():
+                raise InputError(f"stage '{name}': external input {path} does not exist; fix the "
+                                 f"path in the config (e.g. --set {name}.<key>=...)")
+            digests[str(path)] = hash_path(path, stat_cache=cache)
+    finally:
+        cache.flush()
+    return digests
+
+
+@dataclass(frozen=True)
+class KeyMaterial:
+    """Everything an action key is computed from."""
+
+    stage: str
+    code: str
+    params: dict[str, Any]
+    inputs: dict[str, str]
+    external: dict[str, str]
+
+    def to_json(self) -> dict[str, Any]:
+        """The JSON form recorded in the action file."""
+        return {"stage": self.stage, "code": self.code, "params": self.params,
+                "inputs": self.inputs, "external": self.external}
+
+    @property
+    def key(self) -> str:
+        """The action key: BLAKE3 of the canonical JSON."""
+        return hash_bytes(json.dumps(self.to_json(), sort_keys=True, separators=(",", ":")).encode())
+
+
+def key_material(project: Project, ws: Workspace, name: str, params: ResolvedParams,
+                 input_digests: dict[str, str]) -> KeyMaterial:
+    """Compute the key material of stage ``name`` for given input digests."""
+    return KeyMaterial(stage=name, code=project.code_digest(name), params=params.canonical,
+                       inputs=dict(input_digests), external=external_digests(name, params, ws))
+
+
+def input_digests_from_refs(stage: StageDecl, refs: dict[str, Ref]) -> tuple[dict[str, str], list[str]]:
+    """Digests of the stage's inputs from the given refs, and the inputs that have none."""
+    digests, missing = {}, []
+    for inp in stage.inputs:
+        base, out = output_name(inp)
+        ref = refs.get(base)
+        if ref is None or out not in ref.outputs:
+            missing.append(inp)
+        else:
+            digests[inp] = ref.outputs[out]
+    return digests, missing
+
+
+def _flatten(value: Any, prefix: str = "") -> dict[str, Any]:
+    if isinstance(value, dict):
+        flat: dict[str, Any] = {}
+        for key, sub in value.items():
+            flat.update(_flatten(sub, f"{prefix}.{key}" if prefix else str(key)))
+        return flat
+    return {prefix: value}
+
+
+def changed_params(old: dict[str, Any], new: dict[str, Any]) -> list[str]:
+    """Dotted keys whose values differ, with ``old -> new``."""
+    old_flat, new_flat = _flatten(old), _flatten(new)
+    lines = []
+    for key in sorted(set(old_flat) | set(new_flat)):
+        if old_flat.get(key, "<unset>") != new_flat.get(key, "<unset>"):
+            lines.append(f"{key}: {json.dumps(old_flat.get(key, '<unset>'))} -> "
+                         f"{json.dumps(new_flat.get(key, '<unset>'))}")
+    return lines
+
+
+def describe_changes(old: dict[str, Any] | None, new: KeyMaterial) -> list[str]:
+    """Why ``new`` differs from the recorded action ``old`` (code, params keys, inputs, external)."""
+    if old is None:
+        return ["the action record of the last run is missing"]
+    reasons = []
+    if old.get("code") != new.code:
+        reasons.append("code changed")
+    params = changed_params(old.get("params", {}), new.params)
+    if params:
+        reasons.append("params changed: " + "; ".join(params))
+    old_inputs = old.get("inputs", {})
+    changed_inputs = sorted(k for k in set(old_inputs) | set(new.inputs) if old_inputs.get(k) != new.inputs.get(k))
+    if changed_inputs:
+        reasons.append("input changed: " + ", ".join(changed_inputs))
+    old_ext = old.get("external", {})
+    changed_ext = sorted(k for k in set(old_ext) | set(new.external) if old_ext.get(k) != new.external.get(k))
+    if changed_ext:
+        reasons.append("external input changed: " + ", ".join(changed_ext))
+    if not reasons:
+        reasons.append("action key changed")
+    return reasons
+
+
+def outputs_problem(ws: Workspace, outputs: dict[str, str], *, verify: bool = False) -> str | None:
+    """Why a set of output objects cannot be used (missing, corrupt), or None if fine.
+
+    With ``verify`` every object is re-hashed; damaged ones are marked corrupt so the next run
+    treats them as missing and rebuilds them.
+    """
+    for out, digest in sorted(outputs.items()):
+        label = "output" if out == OUT else f"extra output '{out}'"
+        if ws.is_corrupt(digest):
+            return f"{label} object {digest[:12]} is corrupt (found by --verify); it will be rebuilt"
+        if not ws.has_object(digest):
+            return f"{label} object {digest[:12]} is missing"
+        if verify:
+            problems = ws.verify_object(digest)
+            if problems:
+                ws.mark_corrupt(digest, problems)
+                shown = "; ".join(problems[:5]) + (f"; ... {len(problems) - 5} more" if len(problems) > 5 else "")
+                return f"{label} object {digest[:12]} is corrupt ({shown}); it will be rebuilt"
+    return None
+
+
+def check_known(project: Project, names: list[str]) -> None:
+    """Raise if any name is not a stage."""
+    for name in names:
+        if name not in project.dag.upstream:
+            raise ConfigError(f"unknown stage '{name}'; stages: {', '.join(project.dag.order)}")

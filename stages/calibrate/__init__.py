@@ -1,0 +1,1 @@
+"""Camera calibration from ChArUco board takes: detection, intrinsics, extrinsics, bundle adjustment."""

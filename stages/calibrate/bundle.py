@@ -1,0 +1,187 @@
+"""Joint bundle adjustment of every camera and board pose in pycolmap, and the COLMAP export.
+
+The BA model (what pycolmap supports natively): the board is the "world" of the BA, its
+corners are 3D points held constant (so the board's printed metric geometry fixes scale
+and shape); every camera is a sensor of one rig (``sensor_from_rig`` = ``cam_from_rig``,
+the reference camera's is the identity); every board pose is one frame whose
+``rig_from_world`` is ``rig_from_board``. Intrinsics (OPENCV model: fx, fy, cx, cy, k1, k2,
+p1, p2 for OPENCV), sensor poses and frame poses are refined with a robust (soft L1) loss.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from scene.camera import Camera, Rigid
+from stages.calibrate.board import Detection
+
+
+@dataclass
+class BundleResult:
+    """Refined cameras (in the rig frame) and board poses, with pycolmap's summary."""
+
+    cameras: dict[str, Camera]  # cam_from_world = cam_from_rig
+    rig_from_board: dict[int, Rigid]
+    initial_cost: float
+    final_cost: float
+    summary: str
+
+
+def _rigid3d(x: Rigid):
+    import pycolmap
+
+    return pycolmap.Rigid3d(np.hstack([x.R, x.t[:, None]]))
+
+
+def _from_rigid3d(x) -> Rigid:
+    m = np.asarray(x.matrix())
+    return Rigid(m[:3, :3].copy(), m[:3, 3].copy())
+
+
+#: COLMAP camera models this stage uses, each a subset of our (fx, fy, cx, cy, k1, k2, p1, p2, k3) model.
+CAMERA_MODELS = ("SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL_OPENCV")
+
+
+def _colmap_camera(cam: Camera, camera_id: int, model: str):
+    import pycolmap
+
+    k1, k2, p1, p2, k3 = cam.dist
+    f = 0.5 * (cam.fx + cam.fy)
+    params = {"SIMPLE_RADIAL": [f, cam.cx, cam.cy, k1],
+              "RADIAL": [f, cam.cx, cam.cy, k1, k2],
+              "OPENCV": [cam.fx, cam.fy, cam.cx, cam.cy, k1, k2, p1, p2],
+              "FULL_OPENCV": [cam.fx, cam.fy, cam.cx, cam.cy, k1, k2, p1, p2, k3, 0.0, 0.0, 0.0]}[model]
+    return pycolmap.Camera(model=model, width=cam.width, height=cam.height, camera_id=camera_id, params=params)
+
+
+def _camera_from_colmap(name: str, c, cam_from_rig: Rigid) -> Camera:
+    p = [float(v) for v in c.params]
+    model = c.model.name
+    if model == "SIMPLE_RADIAL":
+        fx = fy = p[0]
+        cx, cy, dist = p[1], p[2], (p[3], 0.0, 0.0, 0.0, 0.0)
+    elif model == "RADIAL":
+        fx = fy = p[0]
+        cx, cy, dist = p[1], p[2], (p[3], p[4], 0.0, 0.0, 0.0)
+    else:  # OPENCV, FULL_OPENCV (whose rational k4..k6 our model lacks: they stay 0 only if unrefined)
+        fx, fy, cx, cy = p[:4]
+        dist = (p[4], p[5], p[6], p[7], p[8] if model == "FULL_OPENCV" else 0.0)
+    return Camera(name=name, width=int(c.width), height=int(c.height), fx=fx, fy=fy, cx=cx, cy=cy,
+                  dist=dist, cam_from_world=cam_from_rig)
+
+
+def build_reconstruction(cameras: dict[str, Camera], rig_from_frame: dict[int, Rigid],
+                         detections: dict[str, list[Detection]], points_in_frame: dict[int, np.ndarray] | None,
+                         corners_board: np.ndarray, ref: str, model: str = "OPENCV"):
+    """A pycolmap reconstruction: one rig of all cameras, one frame per board pose.
+
+    With ``points_in_frame`` None the world is the board (corners shared by all frames, the
+    BA model); otherwise each frame has its own 3D points (the studio-world export, where
+    every frame has the same rig pose and the board moves).
+    """
+    import pycolmap
+
+    rec = pycolmap.Reconstruction()
+    names = list(cameras)
+    cam_ids = {n: i + 1 for i, n in enumerate(names)}
+    rig = pycolmap.Rig(rig_id=1)
+    for n in names:
+        rec.add_camera(_colmap_camera(cameras[n], cam_ids[n], model))
+    rig.add_ref_sensor(rec.camera(cam_ids[ref]).sensor_id)
+    for n in names:
+        if n != ref:
+            rig.add_sensor(rec.camera(cam_ids[n]).sensor_id, _rigid3d(cameras[n].cam_from_world))
+    rec.add_rig(rig)
+    point_ids: dict[tuple[int, int], int] = {}
+    if points_in_frame is None:
+        for cid, xyz in enumerate(corners_board):
+            point_ids[(-1, cid)] = rec.add_point3D(xyz, pycolmap.Track())
+    image_id = 0
+    for f, rig_from in sorted(rig_from_frame.items()):
+        frame = pycolmap.Frame(frame_id=f + 1, rig_id=1, rig_from_world=_rigid3d(rig_from))
+        images = []
+        for n in names:
+            det = next((d for d in detections[n] if d.frame == f), None)
+            if det is None:
+                continue
+            image_id += 1
+            image = pycolmap.Image(name=f"{n}/{f:04d}.exr", keypoints=det.corners_px,
+                                   camera_id=cam_ids[n], image_id=image_id)
+            image.frame_id = f + 1
+            frame.add_data_id(image.data_id)
+            images.append((image, det))
+        rec.add_frame(frame)
+        for image, det in images:
+            rec.add_image(image)
+        for image, det in images:
+            for idx, cid in enumerate(det.ids):
+                key = (-1, int(cid)) if points_in_frame is None else (f, int(cid))
+                if key not in point_ids:
+                    point_ids[key] = rec.add_point3D(points_in_frame[f][cid], pycolmap.Track())
+                rec.add_observation(point_ids[key], pycolmap.TrackElement(image.image_id, idx))
+    return rec, cam_ids
+
+
+def bundle_adjust(cameras: dict[str, Camera], rig_from_board: dict[int, Rigid],
+                  detections: dict[str, list[Detection]], corners_board: np.ndarray, ref: str,
+                  loss_scale_px: float, max_iterations: int, model: str) -> BundleResult:
+    """Refine intrinsics, camera-in-rig poses and board poses jointly (pycolmap / Ceres, soft L1)."""
+    import pycolmap
+
+    rec, cam_ids = build_reconstruction(cameras, rig_from_board, detections, None, corners_board, ref, model)
+    options = pycolmap.BundleAdjustmentOptions()
+    options.refine_focal_length = True
+    options.refine_principal_point = True
+    options.refine_extra_params = True
+    options.refine_sensor_from_rig = True
+    options.refine_rig_from_world = True
+    options.refine_points3D = False
+    options.min_track_length = 1
+    options.print_summary = False
+    options.ceres.loss_function_type = pycolmap.LossFunctionType.SOFT_L1
+    options.ceres.loss_function_scale = loss_scale_px
+    options.ceres.solver_options.max_num_iterations = max_iterations
+    options.ceres.solver_options.function_tolerance = 1e-12
+    options.ceres.solver_options.gradient_tolerance = 1e-12
+    options.ceres.solver_options.parameter_tolerance = 1e-12
+    options.ceres.solver_options.num_threads = 1
+    config = pycolmap.BundleAdjustmentConfig()
+    for image_id in rec.images:
+        config.add_image(image_id)
+    for pid in rec.point3D_ids():
+        config.add_constant_point(pid)
+    config.fix_gauge(pycolmap.BundleAdjustmentGauge.UNSPECIFIED)
+    adjuster = pycolmap.create_default_bundle_adjuster(options, config, rec)
+    summary = adjuster.solve()
+    refined = {}
+    for n, cid in cam_ids.items():
+        rig = rec.rig(1)
+        sensor = rec.camera(cid).sensor_id
+        cam_from_rig = Rigid.identity() if n == ref else _from_rigid3d(rig.sensor_from_rig(sensor))
+        refined[n] = _camera_from_colmap(n, rec.camera(cid), cam_from_rig)
+    boards = {fid - 1: _from_rigid3d(fr.rig_from_world) for fid, fr in rec.frames.items()}
+    ceres = summary.ceres_summary
+    brief = (f"{ceres.termination_type.name.lower()} after {ceres.num_successful_steps} steps, "
+             f"cost {ceres.initial_cost:.4g} -> {ceres.final_cost:.4g}, {ceres.num_residuals} residuals")
+    return BundleResult(refined, boards, float(ceres.initial_cost), float(ceres.final_cost), brief)
+
+
+def export_colmap(out_dir: Path, cameras_world: dict[str, Camera], detections: dict[str, list[Detection]],
+                  world_from_board: dict[int, Rigid], corners_board: np.ndarray, ref: str, model: str) -> None:
+    """Write the calibration as a COLMAP model in the studio world, text (``colmap/text``) and binary.
+
+    One rig of all cameras; one frame per board pose, each at the rig's (fixed) world pose;
+    the board corners of each pose as 3D points in world metres, observed by the images.
+    """
+    ref_from_world = cameras_world[ref].cam_from_world
+    in_rig = {n: c.with_pose(c.cam_from_world @ ref_from_world.inverse()) for n, c in cameras_world.items()}
+    frames = {f: ref_from_world for f in world_from_board}
+    points = {f: pose.apply(corners_board) for f, pose in world_from_board.items()}
+    rec, _ = build_reconstruction(in_rig, frames, detections, points, corners_board, ref, model)
+    for sub in ("text", "binary"):
+        (out_dir / sub).mkdir(parents=True, exist_ok=True)
+    rec.write_text(str(out_dir / "text"))
+    rec.write_binary(str(out_dir / "binary"))

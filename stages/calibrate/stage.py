@@ -1,0 +1,205 @@
+"""``calibrate``: ChArUco board takes -> intrinsics, distortion and extrinsics of every camera.
+
+Steps: detect corners in every board image (frames that are over-exposed, blurred or
+without a board are skipped with a reason), calibrate each camera with OpenCV, chain
+all cameras and board poses into one frame through shared board frames, refine
+everything jointly in pycolmap (robust BA, board corners held at their printed
+geometry, which fixes metric scale), and express the result in the studio world: the
+board's fixture pose (``calib/board.json``) at the reference frame defines it.
+
+Outputs: ``cameras.json`` (``scene.camera.save_cameras``), ``colmap/text`` and
+``colmap/binary`` (COLMAP model), ``board_poses.json``, ``report.json`` and
+``residuals/<cam>.png``.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+from pydantic import Field
+
+from pipeline.errors import InputError
+from pipeline.stage import Stage, StageContext, StageParams
+from scene.camera import Camera, Rigid, save_cameras
+from stages.calibrate.board import CharucoFinder, Detection, FrameVerdict, load_board_spec
+from stages.calibrate.bundle import bundle_adjust, export_colmap
+from stages.calibrate.initial import calibrate_intrinsics, chain_poses
+from stages.calibrate.report import plot_residuals, residuals_px
+
+
+class CalibrateParams(StageParams):
+    """Camera calibration settings."""
+
+    min_corners: int = Field(8, ge=4, description="Fewest ChArUco corners for a board image to be used.")
+    min_frames: int = Field(4, ge=3, description="Fewest usable board images per camera.")
+    camera_model: Literal["SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL_OPENCV"] = Field(
+        "RADIAL", description="Lens model (COLMAP names): RADIAL = square pixels, k1, k2; OPENCV adds fx != fy, "
+        "p1, p2. Narrow lenses cannot separate tangential terms from the principal point: keep RADIAL.")
+    max_saturated_fraction: float = Field(
+        0.02, gt=0, le=1, description="A board image with more pixels at the white level than this is over-exposed.")
+    max_edge_width_px: float = Field(3.5, gt=0, description="A board image whose edges are wider than this is blurred.")
+    outlier_frame_px: float = Field(1.0, gt=0, description="A frame whose RMS exceeds this (and 3x the median) is dropped.")
+    max_view_angle_deg: float = Field(
+        50.0, gt=0, lt=90, description="Board images seen more obliquely than this are dropped (biased corners).")
+    loss_scale_px: float = Field(1.0, gt=0, description="Soft-L1 loss scale of the bundle adjustment, pixels.")
+    max_iterations: int = Field(100, ge=1, description="Bundle adjustment iterations.")
+    reference_frame: int | None = Field(
+        None, description="Board frame shot in the fixture (defines the world); default: calib/board.json's.")
+    allow_missing_cameras: bool = Field(
+        False, description="Drop (with a warning) cameras that cannot be calibrated instead of failing.")
+
+
+def _list_cameras(capture: Path) -> list[str]:
+    manifest = capture / "manifest.json"
+    if manifest.is_file():
+        try:
+            return [str(c) for c in json.loads(manifest.read_text())["cameras"]]
+        except (ValueError, KeyError) as err:
+            raise InputError(f"{manifest}: no camera list ({err}); re-run the capture stage") from err
+    root = capture / "calib" / "charuco"
+    if not root.is_dir():
+        raise InputError(f"{root}: no board takes in the capture; the capture must hold calib/charuco/<cam>/")
+    return sorted(p.name for p in root.iterdir() if p.is_dir())
+
+
+def _detect_camera(capture: Path, name: str, finder: CharucoFinder, log
+                   ) -> tuple[list[Detection], list[FrameVerdict], tuple[int, int] | None]:
+    from scene.image_io import read_exr
+
+    folder = capture / "calib" / "charuco" / name
+    files = sorted(folder.glob("*.exr")) if folder.is_dir() else []
+    detections, verdicts, size = [], [], None
+    for path in files:
+        try:
+            frame = int(path.stem)
+        except ValueError:
+            log.warning("%s: not a board frame name (expected <k:04d>.exr); skipped", path)
+            continue
+        try:
+            image = read_exr(path)
+        except ValueError as err:
+            raise InputError(str(err)) from err
+        if size is None:
+            size = (image.shape[1], image.shape[0])
+        elif size != (image.shape[1], image.shape[0]):
+            raise InputError(f"{path}: image size {image.shape[1]}x{image.shape[0]} differs from the camera's "
+                             f"other board images ({size[0]}x{size[1]}); the take is mixed up")
+        det, verdict = finder.find(image, frame)
+        verdicts.append(verdict)
+        if det is not None:
+            detections.append(det)
+        elif not verdict.reason.startswith("board not found"):
+            log.warning("%s frame %04d: %s; frame skipped", name, frame, verdict.reason)
+    return detections, verdicts, size
+
+
+def run(ctx: StageContext) -> None:
+    """Calibrate every camera from the capture's board takes (see the module docstring)."""
+    params: CalibrateParams = ctx.params  # type: ignore[assignment]
+    capture = ctx.input("capture")
+    spec = load_board_spec(capture / "calib" / "board.json", ctx.log)
+    reference_frame = spec.reference_pose_index if params.reference_frame is None else params.reference_frame
+    corners_board = spec.corners_board()
+    finder = CharucoFinder(spec, params.min_corners, params.max_saturated_fraction, params.max_edge_width_px)
+    names = _list_cameras(capture)
+
+    detections: dict[str, list[Detection]] = {}
+    verdicts: dict[str, list[FrameVerdict]] = {}
+    sizes: dict[str, tuple[int, int]] = {}
+    problems: dict[str, str] = {}
+    with ctx.progress(len(names), "cameras") as progress:
+        for name in names:
+            dets, verd, size = _detect_camera(capture, name, finder, ctx.log)
+            detections[name], verdicts[name] = dets, verd
+            if size is not None:
+                sizes[name] = size
+            if not verd:
+                problems[name] = (f"camera {name} has no board images in calib/charuco/{name}; "
+                                  "re-shoot the board take with this camera recording")
+            elif not dets:
+                problems[name] = (f"camera {name} never saw the board ({len(verd)} images, none usable: "
+                                  f"{_reason_summary(verd)}); re-shoot the board take with poses facing {name}")
+            elif len(dets) < params.min_frames:
+                problems[name] = (f"camera {name} has only {len(dets)} usable board images "
+                                  f"(frames {', '.join(f'{d.frame:04d}' for d in dets)}), needs at least "
+                                  f"{params.min_frames}; re-shoot the board take with more poses facing {name}")
+            progress.advance(1, detections=len(dets))
+    for name, message in problems.items():
+        if not params.allow_missing_cameras:
+            raise InputError(message + " (or set calibrate.allow_missing_cameras to drop it)")
+        ctx.log.warning("%s: camera dropped from the calibration", message)
+    names = [n for n in names if n not in problems]
+    if not names:
+        raise InputError("no camera could be calibrated; check calib/charuco in the capture")
+
+    intr = {}
+    for name in names:
+        intr[name] = calibrate_intrinsics(name, detections[name], corners_board, sizes[name], params.camera_model,
+                                          params.outlier_frame_px, params.max_view_angle_deg, ctx.log)
+        ctx.log.info("%s: %d board images, OpenCV RMS %.3f px", name, len(intr[name].cam_from_board),
+                     intr[name].rms_px)
+        detections[name] = [d for d in detections[name] if d.frame in intr[name].cam_from_board]
+    counts = {(n, d.frame): len(d.ids) for n in names for d in detections[n]}
+    ref, cam_from_rig, rig_from_board = chain_poses(names, intr, counts, reference_frame)
+
+    initial = {n: Camera(name=n, width=sizes[n][0], height=sizes[n][1], fx=float(intr[n].K[0, 0]),
+                         fy=float(intr[n].K[1, 1]), cx=float(intr[n].K[0, 2]), cy=float(intr[n].K[1, 2]),
+                         dist=tuple(float(v) for v in intr[n].dist), cam_from_world=cam_from_rig[n])  # type: ignore[arg-type]
+               for n in names}
+    ba = bundle_adjust(initial, rig_from_board, detections, corners_board, ref, params.loss_scale_px,
+                       params.max_iterations, params.camera_model)
+    ctx.log.info("bundle adjustment: %s", ba.summary)
+
+    # the studio world: the fixture frame's board pose is known in it
+    rig_from_world = ba.rig_from_board[reference_frame] @ spec.world_from_board_reference.inverse()
+    cameras = [ba.cameras[n].with_pose(ba.cameras[n].cam_from_world @ rig_from_world) for n in names]
+    world_from_board = {f: rig_from_world.inverse() @ p for f, p in ba.rig_from_board.items()}
+
+    save_cameras(ctx.out / "cameras.json", cameras)
+    export_colmap(ctx.out / "colmap", {c.name: c for c in cameras}, detections, world_from_board, corners_board, ref,
+                  params.camera_model)
+    (ctx.out / "board_poses.json").write_text(json.dumps(
+        {"world_from_board": {f"{f:04d}": {"R": p.R.tolist(), "t": p.t.tolist()}
+                              for f, p in sorted(world_from_board.items())}}, indent=1))
+    (ctx.out / "residuals").mkdir()
+    report, all_res = {}, []
+    for cam in cameras:
+        res, obs = residuals_px(cam, detections[cam.name], world_from_board, corners_board)
+        all_res.append(res)
+        rms = float(np.sqrt(np.mean(np.sum(res ** 2, axis=1))))
+        plot_residuals(ctx.out / "residuals" / f"{cam.name}.png", cam, res, obs)
+        report[cam.name] = {
+            "frames_used": len(detections[cam.name]), "corners_used": int(len(res)), "reproj_rms_px": rms,
+            "opencv_rms_px": intr[cam.name].rms_px,
+            "frames": [{"frame": v.frame, "used": v.used and v.frame in intr[cam.name].cam_from_board,
+                        "reason": v.reason if v.used is False or v.frame in intr[cam.name].cam_from_board
+                        else "outlier RMS", "corners": v.corners} for v in verdicts[cam.name]],
+            "fx": cam.fx, "fy": cam.fy, "cx": cam.cx, "cy": cam.cy, "dist": list(cam.dist)}
+        ctx.log.info("%s: %d frames, %d corners, RMS %.3f px", cam.name, len(detections[cam.name]), len(res), rms)
+    (ctx.out / "report.json").write_text(json.dumps(
+        {"reference_camera": ref, "reference_frame": reference_frame, "dropped_cameras": sorted(problems),
+         "bundle_adjustment": ba.summary, "cameras": report}, indent=1))
+    res = np.concatenate(all_res)
+    ctx.metrics["reproj_rms_px"] = float(np.sqrt(np.mean(np.sum(res ** 2, axis=1))))
+    ctx.metrics["reproj_rms_px_max_camera"] = max(r["reproj_rms_px"] for r in report.values())
+    ctx.metrics["cameras"] = len(cameras)
+    ctx.metrics["cameras_dropped"] = len(problems)
+    ctx.metrics["board_frames"] = len(world_from_board)
+    ctx.metrics["corners_used"] = int(len(res))
+    ctx.metrics["frames_rejected_quality"] = sum(
+        1 for v in verdicts.values() for x in v if not x.used and not x.reason.startswith("board not found"))
+
+
+def _reason_summary(verdicts: list[FrameVerdict]) -> str:
+    reasons: dict[str, int] = {}
+    for v in verdicts:
+        key = v.reason.split(" (")[0]
+        reasons[key] = reasons.get(key, 0) + 1
+    return ", ".join(f"{k}: {n}" for k, n in sorted(reasons.items()))
+
+
+STAGE = Stage(name="calibrate", inputs=("capture",), params=CalibrateParams, run=run, code=("scene",),
+              doc="ChArUco board takes -> intrinsics, distortion, extrinsics (pycolmap BA), COLMAP export.")

@@ -1,0 +1,378 @@
+"""Stage ``capture``: film the subject (virtual studio) or import a real capture folder.
+
+Output (TEAM.md ``capture`` contract)::
+
+    manifest.json                 subject, fps, width, height, cameras, bars, takes, frames[]
+    frames/<cam>/<index:06d>.exr  received images labelled with their trigger index
+    calib/...                     calibration takes (ChArUco board, mirror spheres)
+    scans/scans.npz               the actor's scan session (names, vertices, faces)
+    controller_log.json           the LED controller's log (which light at which pulse)
+    contact_sheet.png, strip.png  previews
+Ground truth (``capture.truth``, evaluation stages only): ``cameras.json``, ``bars.json``,
+``frames.npz``, ``meshes.npz``, ``mattes/<cam>/<index:06d>.png``, ``studio.json``,
+``lights_per_pulse.json`` and the calibration takes' board poses and sphere centres.
+
+Frames are labelled (light per frame, dropped/repeated frames) from the controller log and
+the images' brightness by ``stages.capture.labelling``; the virtual studio never tells the
+labeller what it knows.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import time
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+from pydantic import Field, field_validator
+
+from pipeline.errors import ConfigError, InputError
+from pipeline.stage import Stage, StageContext, StageParams
+from scene.rig import RigConfig, default_rig
+
+
+class CaptureParams(StageParams):
+    """Params of the capture stage."""
+
+    rig: RigConfig = Field(default_factory=default_rig,
+                           description="The studio rig (injected from configs/rig.yaml): cameras and LED bars.")
+    source: str | None = Field(
+        None, description="A real capture folder to import (layout: stages/capture/README.md); "
+                          "None renders one with the virtual studio.")
+    identity_seed: int = Field(0, description="Seed of the virtual subject's identity and materials.")
+    performance_seed: int | None = Field(None, description="Seed of the performance; None uses identity_seed.")
+    takes: tuple[str, ...] = Field(("rom", "speech"), min_length=1,
+                                   description="Takes in order (rom = range of motion, speech); frames split evenly.")
+    max_frames: int | None = Field(None, ge=1, description="Film at most this many frames of the schedule (None = all).")
+    image_scale: float = Field(1.0, gt=0, le=2,
+                               description="Image size relative to the rig's reference 768x1024 (0.3125 = 240x320).")
+    texture_size: int = Field(1024, ge=64, description="Height of the subject's UV material tiles, pixels.")
+    edge_samples: int = Field(4, ge=1, le=8, description="n for n x n antialiasing samples on silhouette pixels.")
+    bar_samples: int = Field(4, ge=1, description="Shadow samples per bar and pixel in OLAT frames.")
+    full_on_bar_samples: int = Field(2, ge=1, description="Shadow samples per bar and pixel in full-on frames.")
+    shot_noise_gain: float = Field(2e-4, ge=0, description="Sensor shot-noise variance per unit of signal.")
+    read_noise: float = Field(1e-3, ge=0, description="Sensor read-noise standard deviation (linear units).")
+    noise_seed: int = Field(0, description="Seed of the sensor noise and light-sample jitter.")
+    head_motion_deg: float = Field(4.0, ge=0, description="Amplitude of the subject's natural head yaw, degrees.")
+    rom_pose_seconds: float = Field(0.6, gt=0, description="Duration of one range-of-motion pose, seconds.")
+    drop_frames: tuple[int, ...] = Field((), description="Trigger indices whose images every camera loses (simulated drops).")
+    camera_drop_frames: dict[str, tuple[int, ...]] = Field(
+        default_factory=dict, description="Per camera name, trigger indices that camera alone loses.")
+    repeat_frames: dict[str, tuple[int, ...]] = Field(
+        default_factory=dict, description="Per camera name, trigger indices that camera delivers twice.")
+    controller_missed_pulses: tuple[int, ...] = Field(
+        (), description="Trigger pulses the LED controller misses (dark frame, later lights shift).")
+    camera_timestamp_jitter_s: float | None = Field(
+        None, ge=0, description="Cameras stamp each image with its trigger time plus this jitter (seconds); "
+                                "the labeller then also uses time. None = no time stamps (brightness only).")
+    half_float: bool = Field(True, description="Store EXR images as float16 (else float32).")
+    calibration_takes: bool = Field(True, description="Also film the ChArUco board and mirror-sphere takes.")
+    calibration_poses: int = Field(24, ge=2, description="Board poses in the ChArUco take.")
+    strip_camera: str = Field("cam00", description="Camera whose consecutive frames make strip.png.")
+    strip_frames: int = Field(12, ge=1, description="Frames in strip.png.")
+
+    @field_validator("source")
+    @classmethod
+    def _source_exists(cls, value: str | None) -> str | None:
+        if value is not None and not Path(value).is_dir():
+            raise ValueError(f"capture source '{value}' is not a folder; give a capture folder "
+                             "(layout in stages/capture/README.md) or leave source unset to render one")
+        return value
+
+
+def _external(params: CaptureParams) -> list[Path]:
+    return [Path(params.source)] if params.source else []
+
+
+def run(ctx: StageContext) -> None:
+    """Capture (render or import), label frames, write previews and metrics."""
+    params: CaptureParams = ctx.params
+    start = time.perf_counter()
+    if params.source:
+        from stages.capture.importer import import_capture
+
+        summary = import_capture(ctx, Path(params.source))
+    else:
+        summary = _virtual_capture(ctx, params)
+    _write_previews(ctx, params, summary["manifest"])
+    frames = summary["manifest"]["frames"]
+    ok = [f for f in frames if f["status"] == "ok"]
+    ctx.metrics.update({
+        "cameras": len(summary["manifest"]["cameras"]),
+        "frames": len(frames),
+        "full_on_frames": sum(f["light"] == "F" for f in ok),
+        "olat_frames": sum(isinstance(f["light"], int) for f in ok),
+        "dropped_frames": sum(f["status"] == "dropped" for f in frames),
+        "seconds": time.perf_counter() - start,
+        **summary.get("metrics", {}),
+    })
+
+
+def _split_takes(n: int, takes: tuple[str, ...], cycle: int) -> list[int]:
+    """Frames per take: whole pattern cycles where possible, the rest to the last take."""
+    cycles = n // cycle if cycle else 0
+    if cycles >= len(takes):
+        counts = [(cycles * (k + 1) // len(takes) - cycles * k // len(takes)) * cycle for k in range(len(takes))]
+    else:
+        counts = [n * (k + 1) // len(takes) - n * k // len(takes) for k in range(len(takes))]
+    counts[-1] += n - sum(counts)
+    return counts
+
+
+def _virtual_capture(ctx: StageContext, params: CaptureParams) -> dict:
+    from hardware.led import Faults, run_emulated_session
+    from hardware.studio import RenderSettings, make_performance, make_subject, scan_session
+    from stages.capture.virtual import RenderTask, frame_state_arrays, render_task
+
+    rig = params.rig
+    seq_path = ctx.input("sequence") / "sequence.json"
+    try:
+        sequence = json.loads(seq_path.read_text())
+        pattern = sequence["pattern"]
+        fps = float(sequence["fps"])
+        n_frames = int(sequence["frames"])
+    except (OSError, ValueError, KeyError, TypeError) as err:
+        raise InputError(f"{seq_path}: not a valid sequence file ({err}); re-run the sequence stage") from err
+    if params.max_frames is not None:
+        n_frames = min(n_frames, params.max_frames)
+    cameras = rig.cameras_at(params.image_scale)
+    cam_names = [c.name for c in cameras]
+    streams = _camera_streams(params, cam_names, n_frames)
+
+    # The controller runs the program; its log (read back over serial) is all a real rig knows.
+    trigger_times = [i / fps for i in range(n_frames)]
+    session = run_emulated_session(
+        pattern=pattern, n_frames=n_frames, n_bars=len(rig.bars), trigger_times_s=trigger_times,
+        faults=Faults(drop_pulses=frozenset(params.controller_missed_pulses)))
+    log_json = [entry.to_json() for entry in session.log]
+    (ctx.out / "controller_log.json").write_text(json.dumps(
+        {"program_crc32": session.program_crc32, "fps": fps, "entries": log_json}, indent=1))
+
+    counts = _split_takes(n_frames, params.takes, len(pattern))
+    seed = params.identity_seed if params.performance_seed is None else params.performance_seed
+    performance = make_performance(seed, params.takes, counts, fps, params.rom_pose_seconds,
+                                   np.asarray(rig.head_center_m), head_motion_deg=params.head_motion_deg)
+    settings = RenderSettings(edge_samples=params.edge_samples, bar_samples=params.bar_samples,
+                              full_on_bar_samples=params.full_on_bar_samples,
+                              shot_noise_gain=params.shot_noise_gain, read_noise=params.read_noise,
+                              seed=params.noise_seed)
+    truth = ctx.extra_outputs["truth"]
+    arrivals = [[tuple(k for k, i in enumerate(stream) if i == index) for stream in streams]
+                for index in range(n_frames)]  # [F][C] arrival indices of each trigger per camera
+    tasks = [RenderTask(rig=rig, subject_name=ctx.subject, identity_seed=params.identity_seed,
+                        texture_size=params.texture_size, settings=settings, cameras=tuple(cameras),
+                        frame=performance[i], light=session.lit_per_pulse[i], received=tuple(arrivals[i]),
+                        received_dir=ctx.out / "_received", matte_dir=truth / "mattes", half=params.half_float)
+             for i in range(n_frames) if any(arrivals[i])]
+    ctx.log.info("filming %d trigger pulses x %d cameras at %dx%d (%d images lost by the cameras, "
+                 "%d pulses missed by the controller)", n_frames, len(cameras), cameras[0].width,
+                 cameras[0].height, n_frames * len(cameras) - sum(len(set(s)) for s in streams),
+                 len(params.controller_missed_pulses))
+    render_start = time.perf_counter()
+    results = ctx.executor.map(render_task, tasks, desc="frames")
+    render_s = time.perf_counter() - render_start
+    bright_of = {r["index"]: r["brightness"] for r in results}
+    brightness = [[bright_of[i][c] for i in stream] for c, stream in enumerate(streams)]  # C x [R_c]
+
+    frame_times = None
+    if params.camera_timestamp_jitter_s is not None:
+        rng = np.random.default_rng([params.noise_seed, 7])
+        frame_times = [[i / fps + params.camera_timestamp_jitter_s * rng.standard_normal() for i in stream]
+                       for stream in streams]
+    manifest, label_metrics = _label_and_place(ctx, fps, cam_names, len(rig.bars), params.takes,
+                                               [f.take for f in performance], log_json, brightness, n_frames,
+                                               frame_times=frame_times)
+    manifest.update(width=cameras[0].width, height=cameras[0].height)
+    (ctx.out / "manifest.json").write_text(json.dumps(manifest, indent=1))
+    lost_images = n_frames * len(cameras) - sum(r["images"] for r in results)
+
+    subject = make_subject(ctx.subject, params.identity_seed, texture_size=params.texture_size)
+    names, scan_verts, faces = scan_session(subject)
+    (ctx.out / "scans").mkdir()
+    np.savez_compressed(ctx.out / "scans" / "scans.npz", names=np.array(names), vertices=scan_verts, faces=faces)
+
+    if params.calibration_takes:
+        _calibration_takes(ctx, params, cameras, truth)
+
+    _write_truth(truth, rig, cameras, subject, performance, session.lit_per_pulse, streams, settings, params)
+    total_rays = sum(r["rays"] for r in results)
+    return {"manifest": manifest, "metrics": {
+        **label_metrics, "lost_images": lost_images,
+        "render_seconds": render_s,
+        "rays_per_second": total_rays / max(sum(r["seconds"] for r in results), 1e-9),
+        "images_per_second": len(results) * len(cameras) / max(render_s, 1e-9),
+        "image_width_px": cameras[0].width, "image_height_px": cameras[0].height,
+        "controller_log_entries": len(log_json),
+    }}
+
+
+def _camera_streams(params: CaptureParams, cam_names: list[str], n_frames: int) -> list[list[int]]:
+    """Per camera, the trigger index of each image in arrival order (drops and repeats applied)."""
+    for key, mapping in (("camera_drop_frames", params.camera_drop_frames), ("repeat_frames", params.repeat_frames)):
+        for cam, ids in mapping.items():
+            if cam not in cam_names:
+                raise ConfigError(f"capture.{key}: unknown camera '{cam}'; cameras: {', '.join(cam_names)}")
+            bad = [i for i in ids if not 0 <= i < n_frames]
+            if bad:
+                raise ConfigError(f"capture.{key}.{cam}: trigger indices {bad} outside 0..{n_frames - 1}")
+    for key, ids in (("drop_frames", params.drop_frames), ("controller_missed_pulses", params.controller_missed_pulses)):
+        bad = [i for i in ids if not 0 <= i < n_frames]
+        if bad:
+            raise ConfigError(f"capture.{key}: trigger indices {bad} outside 0..{n_frames - 1}")
+    streams = []
+    for cam in cam_names:
+        lost = set(params.drop_frames) | set(params.camera_drop_frames.get(cam, ()))
+        twice = set(params.repeat_frames.get(cam, ()))
+        stream = []
+        for i in range(n_frames):
+            if i in lost:
+                continue
+            stream.append(i)
+            if i in twice:
+                stream.append(i)
+        streams.append(stream)
+    return streams
+
+
+def _label_and_place(ctx: StageContext, fps: float, cam_names: list[str], n_bars: int, takes: tuple[str, ...],
+                     take_of_trigger: list[str], log_json: list[dict], brightness: list[list[float]],
+                     n_triggers: int, received: Callable[[str, int], Path] | None = None,
+                     place: Callable[[Path, Path], None] = os.replace,
+                     frame_times: list[list[float]] | None = None) -> tuple[dict, dict]:
+    """Label received frames from the controller log, move them to ``frames/<cam>/<index>.exr``.
+
+    Images arrive in ``received(cam, k)`` (default ``_received/<cam>/<k>.exr``, arrival order)
+    and are moved (``place``: a rename; the importer hard-links). Each log entry carries its
+    trigger's time stamp, which gives the frame index; a trigger the controller did not act
+    on has no log entry and is listed as dropped (``reason: "no light"``).
+    """
+    from stages.capture.labelling import label_frames
+
+    log_lights = [e["light"] for e in log_json]
+    trigger_of_entry = [int(round(e["time_us"] * 1e-6 * fps)) for e in log_json]
+    try:
+        result = label_frames(log_lights, brightness, camera_names=cam_names, frame_times_s=frame_times,
+                              log_times_s=[e["time_us"] * 1e-6 for e in log_json] if frame_times else None)
+    except ValueError as err:
+        raise InputError(f"capture: frames cannot be matched to the controller log ({err})") from err
+    for line in result.warnings:
+        ctx.log.warning(line)
+    staging = ctx.out / "_received"
+    received = received or (lambda cam, r: staging / cam / f"{r:06d}.exr")
+    for c, cam in enumerate(cam_names):
+        (ctx.out / "frames" / cam).mkdir(parents=True, exist_ok=True)
+        labels = result.cameras[c]
+        for r, (k, status) in enumerate(zip(labels.pulse, labels.status)):
+            if status == "ok":
+                place(received(cam, r), ctx.out / "frames" / cam / f"{trigger_of_entry[k]:06d}.exr")
+    shutil.rmtree(staging, ignore_errors=True)
+
+    by_trigger = {t: k for k, t in enumerate(trigger_of_entry)}
+    frames = []
+    n_total = max(n_triggers, max(trigger_of_entry, default=-1) + 1)
+    for index in range(n_total):
+        take = take_of_trigger[index] if index < len(take_of_trigger) else takes[-1]
+        entry = {"index": index, "take": take, "time_s": round(index / fps, 9)}
+        k = by_trigger.get(index)
+        if k is None:
+            entry.update(light=None, status="dropped", reason="no light")
+        else:
+            missing = [cam_names[c] for c in range(len(cam_names)) if result.pulse_frame[c, k] < 0]
+            entry.update(light=log_lights[k], status="ok" if not missing else "dropped")
+            if missing:
+                entry.update(reason="no image", missing_cameras=missing)
+        frames.append(entry)
+    manifest = {"subject": ctx.subject, "fps": fps, "width": None, "height": None, "cameras": cam_names,
+                "bars": n_bars, "takes": list(takes), "frames": frames}
+    metrics = {"repeated_frames": result.count("repeated"), "unexpected_frames": result.count("unexpected"),
+               "shifted_frames": result.shifted_frames(), "labelling_warnings": len(result.warnings)}
+    return manifest, metrics
+
+
+def _calibration_takes(ctx: StageContext, params: CaptureParams, cameras, truth: Path) -> None:
+    from hardware.studio.calibration_takes import (BarLight, CalibrationTakeParams, CharucoBoardConfig,
+                                                   MirrorSpheresConfig, render_calibration_takes)
+
+    rig = params.rig
+    try:
+        board = CharucoBoardConfig(**rig.calibration.get("board", {}))
+        spheres = MirrorSpheresConfig(**rig.calibration.get("mirror_spheres", {}))
+    except (TypeError, ValueError) as err:
+        raise ConfigError(f"configs/rig.yaml: bad 'calibration' section ({err})") from err
+    bars = [BarLight(b.id, b.center_world, b.axis_world, b.length_m, b.intensity) for b in rig.light_bars()]
+    take_params = CalibrationTakeParams(poses=params.calibration_poses, seed=params.noise_seed,
+                                        volume_center_m=tuple(rig.head_center_m))
+    with ctx.progress(2 * len(cameras), "calibration takes") as progress:
+        render_calibration_takes(cameras, bars, ctx.out, truth, take_params, board, spheres, progress=progress)
+
+
+def _write_truth(truth: Path, rig: RigConfig, cameras, subject, performance, lit_per_pulse, streams,
+                 settings, params: CaptureParams) -> None:
+    from dataclasses import asdict
+
+    from scene.camera import save_cameras
+    from stages.capture.virtual import frame_state_arrays
+
+    save_cameras(truth / "cameras.json", cameras)
+    bars = []
+    for bar in rig.light_bars():
+        entry = bar.to_dict()
+        entry["radiant_intensity"] = bar.intensity * settings.bar_intensity_scale
+        bars.append(entry)
+    (truth / "bars.json").write_text(json.dumps({"bars": bars, "intensity_scale": settings.bar_intensity_scale},
+                                                indent=1))
+    arrays = frame_state_arrays(performance)
+    received = np.zeros((len(cameras), len(performance)), np.int32)  # [C, F] images delivered per trigger
+    for c, stream in enumerate(streams):
+        np.add.at(received[c], np.asarray(stream, int), 1)
+    np.savez_compressed(truth / "frames.npz", **arrays, expression_names=np.array(subject.rig.expression_names),
+                        received=received,
+                        lit=np.array(["none" if x is None else str(x) for x in lit_per_pulse]))
+    verts = np.stack([subject.vertices(f.expression_weights) for f in performance]).astype(np.float32)
+    np.savez(truth / "meshes.npz", vertices=verts, faces=subject.rig.triangles)  # float noise: zlib gains little
+    (truth / "lights_per_pulse.json").write_text(json.dumps(list(lit_per_pulse)))
+    (truth / "studio.json").write_text(json.dumps({
+        "subject": subject.name, "identity_seed": subject.seed, "texture_size": params.texture_size,
+        "performance_seed": params.identity_seed if params.performance_seed is None else params.performance_seed,
+        "identity_coeffs": subject.identity_coeffs.tolist(), "skin_albedo": subject.skin_albedo.tolist(),
+        "iris_albedo": subject.iris_albedo.tolist(), "render_settings": asdict(settings),
+        "drop_frames": list(params.drop_frames), "controller_missed_pulses": list(params.controller_missed_pulses),
+    }, indent=1))
+
+
+def _write_previews(ctx: StageContext, params: CaptureParams, manifest: dict) -> None:
+    from scene.image_io import read_exr
+    from stages.capture.previews import contact_sheet, strip
+
+    ok = [f for f in manifest["frames"] if f["status"] == "ok"]
+    full_on = [f for f in ok if f["light"] == "F"] or ok
+    if not full_on:
+        ctx.log.warning("no frame was received: no contact sheet or strip")
+        return
+    cams = manifest["cameras"]
+    pick = full_on[0]["index"]
+    images = [read_exr(ctx.out / "frames" / cam / f"{pick:06d}.exr")[..., :3] for cam in cams]
+    exposure = 0.6 / max(float(np.percentile(np.concatenate([i.reshape(-1, 3) for i in images]), 99)), 1e-6)
+    contact_sheet(ctx.out / "contact_sheet.png", images, [f"{c} #{pick} F" for c in cams], exposure=exposure)
+    cam = params.strip_camera if params.strip_camera in cams else cams[0]
+    chosen = ok[:params.strip_frames]
+    strip_images = [read_exr(ctx.out / "frames" / cam / f"{f['index']:06d}.exr")[..., :3] for f in chosen]
+    labels = [f"{'F' if f['light'] == 'F' else 'bar ' + str(f['light'])} #{f['index']}" for f in chosen]
+    strip(ctx.out / "strip.png", strip_images, labels, full_on_exposure=exposure, olat_exposure=exposure * 10)
+
+
+STAGE = Stage(
+    name="capture",
+    inputs=("sequence",),
+    params=CaptureParams,
+    run=run,
+    code=("scene.camera", "scene.rig", "scene.lights", "scene.face_rig", "scene.image_io", "scene.colour",
+          "hardware.studio.subject", "hardware.studio.performance", "hardware.studio.renderer",
+          "hardware.studio.scans", "hardware.studio.calibration_takes", "hardware.led"),
+    extra_outputs=("truth",),
+    external_inputs=_external,
+    doc="Film the subject in the virtual studio (or import a real capture), label frames by their light.",
+)

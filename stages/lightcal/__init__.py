@@ -1,0 +1,1 @@
+"""Light calibration: LED bar positions from their reflections in mirror spheres."""

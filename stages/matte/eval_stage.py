@@ -1,0 +1,107 @@
+"""Stage ``matte_eval``: the mattes against the studio's exact alpha, beside the classical baseline.
+
+For every image with a ground-truth matte, the stage's matte and the baseline's (threshold
++ guided filter, computed here from the capture image) are measured (MAE, MSE, gradient
+error; ``stages.matte.measures``), then averaged separately over full-on (F) and OLAT
+frames. Keys: ``mae_full``, ``mse_full``, ``grad_err_full``, ``mae_olat``, ``mse_olat``,
+``grad_err_olat``, and the same with the prefix ``baseline_``; ``*_p95`` and ``*_max`` of the
+MAE show the worst images. ``per_image.json`` lists every image's figures.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from pydantic import Field
+
+from pipeline.errors import InputError
+from pipeline.stage import Stage, StageContext, StageParams
+from stages.matte.baseline import BaselineConfig, baseline_matte
+from stages.matte.measures import all_measures
+
+
+class MatteEvalParams(StageParams):
+    """Params of the matte evaluation."""
+
+    baseline: BaselineConfig = Field(BaselineConfig(), description="The classical matte measured beside the stage's.")
+    frame_stride: int = Field(1, ge=1, description="Evaluate every n-th frame (1 = all).")
+
+
+@dataclass(frozen=True)
+class CameraJob:
+    """The evaluation of one camera's images (a picklable unit of work)."""
+
+    cam: str
+    frames: tuple[tuple[int, bool], ...]  # (index, is_olat)
+    matte_dir: Path
+    capture_dir: Path
+    truth_dir: Path
+    baseline: BaselineConfig
+
+
+def evaluate_camera(job: CameraJob) -> list[dict[str, Any]]:
+    """Per-image measures of the stage's matte and the baseline's for one camera."""
+    from scene.image_io import read_exr, read_png16
+
+    records = []
+    for index, is_olat in job.frames:
+        truth_path = job.truth_dir / "mattes" / job.cam / f"{index:06d}.png"
+        matte_path = job.matte_dir / "mattes" / job.cam / f"{index:06d}.png"
+        image_path = job.capture_dir / "frames" / job.cam / f"{index:06d}.exr"
+        if not (truth_path.is_file() and image_path.is_file()):
+            continue  # dropped frame: no image, nothing to matte
+        if not matte_path.is_file():
+            raise InputError(f"{matte_path}: camera {job.cam} frame {index} has an image but no matte; "
+                             "re-run the matte stage")
+        truth = read_png16(truth_path)
+        alpha = read_png16(matte_path)
+        baseline = baseline_matte(read_exr(image_path)[..., :3], job.baseline)
+        record = {"cam": job.cam, "index": index, "olat": is_olat, **all_measures(alpha, truth)}
+        record.update({f"baseline_{k}": v for k, v in all_measures(baseline, truth).items()})
+        records.append(record)
+    return records
+
+
+def summarise(records: list[dict[str, Any]]) -> dict[str, float]:
+    """Mean measures over F and OLAT images separately (plus MAE p95/max and counts)."""
+    metrics: dict[str, float] = {}
+    for split, want_olat in (("full", False), ("olat", True)):
+        chosen = [r for r in records if r["olat"] == want_olat]
+        metrics[f"images_{split}"] = len(chosen)
+        if not chosen:
+            continue
+        for prefix in ("", "baseline_"):
+            for measure in ("mae", "mse", "grad_err"):
+                metrics[f"{prefix}{measure}_{split}"] = float(np.mean([r[prefix + measure] for r in chosen]))
+            maes = [r[prefix + "mae"] for r in chosen]
+            metrics[f"{prefix}mae_{split}_p95"] = float(np.percentile(maes, 95))
+            metrics[f"{prefix}mae_{split}_max"] = float(np.max(maes))
+    return metrics
+
+
+def run(ctx: StageContext) -> None:
+    """Measure the mattes against ground truth, beside the baseline."""
+    params: MatteEvalParams = ctx.params  # type: ignore[assignment]
+    capture, truth, matte = ctx.input("capture"), ctx.input("capture.truth"), ctx.input("matte")
+    manifest_path = capture / "manifest.json"
+    if not manifest_path.is_file():
+        raise InputError(f"{manifest_path} is missing; re-run the capture stage")
+    manifest = json.loads(manifest_path.read_text())
+    frames = tuple((int(f["index"]), f.get("light") != "F") for f in manifest["frames"][::params.frame_stride]
+                   if f.get("status", "ok") != "dropped")
+    jobs = [CameraJob(cam, frames, matte, capture, truth, params.baseline) for cam in manifest["cameras"]]
+    records = [r for per_cam in ctx.executor.map(evaluate_camera, jobs, desc="cameras") for r in per_cam]
+    if not records:
+        raise InputError(f"{truth / 'mattes'}: no ground-truth matte matches a captured image; "
+                         "is capture.truth from the same capture?")
+    ctx.metrics.update(summarise(records))
+    (ctx.out / "per_image.json").write_text(json.dumps(records, indent=0))
+
+
+STAGE = Stage(name="matte_eval", inputs=("matte", "capture", "capture.truth"), params=MatteEvalParams, run=run,
+              code=("scene.image_io",), evaluates="matte",
+              doc="Matte accuracy (MAE, MSE, gradient error) on F and OLAT frames, beside the classical baseline.")

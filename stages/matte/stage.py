@@ -1,0 +1,245 @@
+"""Stage ``matte``: an alpha matte for every captured image (MODNet-style network).
+
+Steps:
+1. The matting network is trained once per training config, on virtual-studio renders of
+   OTHER subjects (``stages.matte.studio_data``: other identity seeds, other performances,
+   F and OLAT lighting, exact alpha; augmented with exposure, noise and blur), and kept in
+   the workspace root's shared cache (``stages.matte.model_cache``, keyed by a hash of the
+   training params, the image scale and the code), so every subject reuses it.
+2. SOC adaptation (MODNet's sub-objectives consistency) on unlabelled frames of this capture.
+3. Batched inference over every image, written as 16-bit PNG mattes.
+
+OLAT frames: the unlit side of the head is black, so the image alone cannot say where the
+head ends there. Every image goes to the network together with the nearest full-on (F)
+frame of the same camera as 3 extra input channels (an F frame is its own guide). The F
+frame is at most one frame-time (1/24 s) away in the OLAT pattern F, O, O, F, so the head
+has moved by a pixel or two: the network takes the silhouette from the guide and the exact
+edge from the OLAT image wherever the edge is lit. It is trained on exactly such pairs
+(the studio renders frame t under one bar and frame t +- 1 under all bars).
+
+``method: baseline`` replaces the network by the classical threshold + guided-filter matte
+(``stages.matte.baseline``), the fallback when no model can be trained.
+
+Output::
+
+    mattes/<cam>/<index:06d>.png   16-bit alpha, one per received image
+    contact_sheet.png              mattes of a few frames from every camera (F and OLAT)
+    model.json                     which cached model was used, training and SOC records
+    metrics.json                   images_per_second, training_seconds, ...
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections import OrderedDict
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+import torch
+from pydantic import Field
+
+from pipeline.errors import InputError
+from pipeline.stage import Stage, StageContext, StageParams
+from stages.matte.baseline import BaselineConfig, baseline_matte
+from stages.matte.contact_sheet import write_contact_sheet
+from stages.matte.inputs import (bright_level, camera_reference, is_full_on, nearest_full_on, network_input,
+                                 olat_scale)
+from stages.matte.model_cache import cache_key, load_or_train, source_digest
+from stages.matte.studio_data import StudioDataConfig, collect, identity_jobs, render_identity
+from stages.matte.training import InputConfig, SocConfig, TrainConfig, predict, soc_adapt, train_supervised
+
+MATTE_DIR = Path(__file__).resolve().parent
+ROOT = MATTE_DIR.parents[1]
+
+
+class MatteParams(StageParams):
+    """Params of the matte stage."""
+
+    method: Literal["modnet", "baseline"] = Field("modnet", description="'modnet' (the network) or 'baseline' (threshold + guided filter).")
+    train: TrainConfig = Field(TrainConfig(), description="Supervised training of the network (cached across subjects).")
+    data: StudioDataConfig = Field(StudioDataConfig(), description="Studio renders of other subjects used for training.")
+    soc: SocConfig = Field(SocConfig(), description="SOC adaptation on unlabelled frames of this capture.")
+    soc_frames: int = Field(32, ge=0, description="Unlabelled frames (spread over cameras and lights) used by SOC.")
+    baseline: BaselineConfig = Field(BaselineConfig(), description="The classical matte (method 'baseline').")
+    batch_size: int = Field(8, ge=1, description="Images per inference batch.")
+    device: Literal["auto", "cpu", "cuda"] = Field("auto", description="Torch device; 'auto' uses CUDA when present.")
+    contact_sheet_frames: int = Field(4, ge=1, description="Frames (rows) shown in the contact sheet.")
+
+
+def training_code_files() -> list[Path]:
+    """Source files whose behaviour determines the trained weights (network, data, studio)."""
+    own = [MATTE_DIR / name for name in ("modnet.py", "losses.py", "augment.py", "inputs.py", "training.py",
+                                         "studio_data.py")]
+    studio = sorted((ROOT / "hardware" / "studio").glob("*.py"))
+    scene = sorted((ROOT / "scene").glob("*.py"))
+    return own + studio + scene + [ROOT / "configs" / "rig.yaml"]
+
+
+def _device(params: MatteParams) -> str:
+    if params.device == "auto":
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    return params.device
+
+
+def _read_manifest(capture: Path) -> dict[str, Any]:
+    path = capture / "manifest.json"
+    if not path.is_file():
+        raise InputError(f"{path} is missing: the capture object has no manifest; re-run the capture stage")
+    manifest = json.loads(path.read_text())
+    for key in ("cameras", "frames", "width", "height"):
+        if key not in manifest:
+            raise InputError(f"{path} has no '{key}' key; re-run the capture stage")
+    return manifest
+
+
+class FrameReader:
+    """Reads a camera's linear frames, keeping the recent ones (guides are reused by 2 OLAT frames)."""
+
+    def __init__(self, capture: Path, cam: str, keep: int = 8) -> None:
+        self.folder, self.cam, self.keep = capture / "frames" / cam, cam, keep
+        self._cache: OrderedDict[int, np.ndarray] = OrderedDict()
+
+    def path(self, index: int) -> Path:
+        return self.folder / f"{index:06d}.exr"
+
+    def exists(self, index: int) -> bool:
+        return self.path(index).is_file()
+
+    def read(self, index: int) -> np.ndarray:
+        """The frame [H, W, 3] float32 linear."""
+        from scene.image_io import read_exr
+
+        if index in self._cache:
+            self._cache.move_to_end(index)
+            return self._cache[index]
+        path = self.path(index)
+        if not path.is_file():
+            raise InputError(f"{path}: camera {self.cam} frame {index} is missing; re-run the capture stage")
+        image = read_exr(path)[..., :3].astype(np.float32)
+        self._cache[index] = image
+        while len(self._cache) > self.keep:
+            self._cache.popitem(last=False)
+        return image
+
+
+def usable_frames(manifest: dict[str, Any], reader: FrameReader) -> list[dict[str, Any]]:
+    """Manifest frames that have an image for this camera (dropped frames have none)."""
+    return [f for f in manifest["frames"] if f.get("status", "ok") != "dropped" and reader.exists(int(f["index"]))]
+
+
+class CameraInputs:
+    """Builds network inputs for one camera's frames (exposure reference from its F frames)."""
+
+    def __init__(self, manifest: dict[str, Any], capture: Path, cam: str, inputs: InputConfig) -> None:
+        self.reader = FrameReader(capture, cam)
+        self.frames = usable_frames(manifest, self.reader)
+        self.light = {int(f["index"]): f.get("light") for f in self.frames}
+        self.guides = nearest_full_on(self.frames)
+        levels = [bright_level(self.reader.read(int(f["index"]))) for f in self.frames if is_full_on(f)]
+        self.reference = camera_reference(levels, inputs.exposure_floor)
+        self.config = inputs
+
+    def network_input(self, index: int) -> np.ndarray:
+        """[6, H, W] input of frame ``index``."""
+        image = self.reader.read(index)
+        guide = self.reader.read(self.guides[index])
+        olat = self.light[index] != "F"
+        scale = olat_scale(image, self.reference, self.config.olat_floor_ratio) if olat else self.reference
+        return network_input(image, scale, guide, self.reference)
+
+
+def _image_scale(manifest: dict[str, Any]) -> float:
+    from scene.rig import default_rig
+
+    rig = default_rig()
+    return round(float(manifest["width"]) / float(rig.width_px), 6)
+
+
+def trained_model(ctx: StageContext, params: MatteParams, image_scale: float, device: str):
+    """The supervised model from the shared cache, trained now if missing; returns (model, meta, cached)."""
+    payload = {"train": params.train.model_dump(mode="json"), "data": params.data.model_dump(mode="json"),
+               "image_scale": image_scale}
+    key = cache_key(payload, source_digest(training_code_files()))
+
+    def train() -> tuple[Any, dict[str, Any]]:
+        start = time.perf_counter()
+        jobs = identity_jobs(params.data, image_scale)
+        ctx.log.info("rendering matting training data: %d identities at scale %.4f", len(jobs), image_scale)
+        train_set = collect(ctx.executor.map(render_identity, jobs, desc="matte training identities"))
+        render_seconds = time.perf_counter() - start
+        ctx.log.info("training the %s matting network on %d samples (%d iterations)", params.train.net_size,
+                     len(train_set), params.train.iterations)
+        with ctx.progress(params.train.iterations, "iterations") as progress:
+            model, record = train_supervised(train_set, params.train, device, ctx.log,
+                                             on_step=lambda step, parts: progress.advance(1, loss=parts["loss"]))
+        return model, {"payload": payload, "render_seconds": render_seconds, "training": record}
+
+    return load_or_train(ctx.shared_cache_dir, key, train, ctx.log)
+
+
+def soc_inputs(cameras: dict[str, CameraInputs], count: int, seed: int) -> np.ndarray:
+    """Network inputs [N, 6, H, W] of ``count`` frames spread over cameras, F and OLAT alike."""
+    pairs = [(cam, int(f["index"])) for cam, ci in cameras.items() for f in ci.frames]
+    if count == 0 or not pairs:
+        return np.zeros((0, 6, 1, 1), np.float32)
+    rng = np.random.default_rng(seed)
+    picks = rng.choice(len(pairs), size=min(count, len(pairs)), replace=False)
+    return np.stack([cameras[pairs[i][0]].network_input(pairs[i][1]) for i in sorted(picks)])
+
+
+def run(ctx: StageContext) -> None:
+    """Matte every image of the capture."""
+    from scene.image_io import write_png16
+
+    params: MatteParams = ctx.params  # type: ignore[assignment]
+    capture = ctx.input("capture")
+    manifest = _read_manifest(capture)
+    device = _device(params)
+    cameras = {cam: CameraInputs(manifest, capture, cam, params.train.inputs) for cam in manifest["cameras"]}
+    record: dict[str, Any] = {"method": params.method, "device": device}
+    model = None
+    if params.method == "modnet":
+        image_scale = _image_scale(manifest)
+        model, meta, cached = trained_model(ctx, params, image_scale, device)
+        record.update({"model_key": meta.get("key"), "model_cached": cached, "training": meta.get("training"),
+                       "render_seconds": meta.get("render_seconds")})
+        ctx.metrics["model_cached"] = int(cached)
+        ctx.metrics["training_seconds"] = 0.0 if cached else float(meta["training"]["seconds"])
+        unlabelled = soc_inputs(cameras, params.soc_frames, params.soc.seed)
+        model, soc_record = soc_adapt(model, unlabelled, params.soc, device)
+        record["soc"] = soc_record
+        ctx.metrics["soc_seconds"] = float(soc_record["seconds"])
+
+    total = sum(len(ci.frames) for ci in cameras.values())
+    written: dict[str, dict[int, Path]] = {}
+    start = time.perf_counter()
+    with ctx.progress(total, "images") as progress:
+        for cam, ci in cameras.items():
+            folder = ctx.out / "mattes" / cam
+            folder.mkdir(parents=True, exist_ok=True)
+            written[cam] = {}
+            indices = [int(f["index"]) for f in ci.frames]
+            for first in range(0, len(indices), params.batch_size):
+                batch = indices[first:first + params.batch_size]
+                if model is not None:
+                    alphas = predict(model, np.stack([ci.network_input(i) for i in batch]), params.batch_size, device)
+                else:
+                    alphas = [baseline_matte(ci.reader.read(i), params.baseline) for i in batch]
+                for index, alpha in zip(batch, alphas):
+                    path = folder / f"{index:06d}.png"
+                    write_png16(path, alpha)
+                    written[cam][index] = path
+                progress.advance(len(batch))
+    seconds = time.perf_counter() - start
+    ctx.metrics["images"] = total
+    ctx.metrics["inference_seconds"] = seconds
+    ctx.metrics["images_per_second"] = total / seconds if seconds > 0 else 0.0
+    write_contact_sheet(ctx.out / "contact_sheet.png", manifest, written, params.contact_sheet_frames)
+    (ctx.out / "model.json").write_text(json.dumps(record, indent=1, sort_keys=True, default=str))
+
+
+STAGE = Stage(name="matte", inputs=("capture",), params=MatteParams, run=run,
+              code=("scene.image_io", "scene.rig", "hardware.studio"),
+              doc="Alpha matte per image: MODNet-style network trained on other studio subjects, SOC-adapted.")

@@ -1,0 +1,121 @@
+"""Render a trained relightable head under many lights: the fast voxel-space sum and the naive reference.
+
+Volume rendering is linear in colour once opacity is fixed, and opacity does not depend on
+the light (``RelightableMVP.decode_geometry`` holds it). So the image under K lights with
+colours ``c_k`` is ``raymarch(sum_k c_k * rgb_k)``: decode the per-light RGB voxel grids in
+batches, sum them with the light colours in voxel space, raymarch once (``render_lights``).
+``render_lights_naive`` raymarches every light and sums the images; the two agree to float
+rounding (tests/stages/relight/test_render.py).
+
+Everything here is in head space: cameras (``cam_from_head`` as the camera's extrinsics)
+and light positions are head-space points, as the network was trained on.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from avatar.model import DecodedGeometry, RelightableMVP
+from avatar.raymarch import raymarch
+from scene.camera import Camera
+
+
+@dataclass
+class Image:
+    """A rendered image: linear RGB [H, W, 3] and accumulated opacity [H, W] (float32 numpy)."""
+
+    rgb: np.ndarray
+    alpha: np.ndarray
+
+
+def camera_rays(camera: Camera, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
+    """Head-space rays of every pixel: origins and directions [1, H*W, 3] (camera extrinsics = cam_from_head)."""
+    origins, dirs = camera.image_rays()  # [H, W, 3]
+    o = torch.as_tensor(origins.reshape(1, -1, 3), dtype=torch.float32, device=device)
+    d = torch.as_tensor(dirs.reshape(1, -1, 3), dtype=torch.float32, device=device)
+    return o, d
+
+
+def _expand(geometry: DecodedGeometry, n: int) -> DecodedGeometry:
+    """The batch-1 geometry repeated ``n`` times (views, no copies)."""
+    return DecodedGeometry(*(t.expand(n, *t.shape[1:]) for t in (
+        geometry.centre, geometry.rotation, geometry.half_extent, geometry.density,
+        geometry.guide_vertices, geometry.feature)))
+
+
+class HeadRenderer:
+    """A trained model plus what rendering needs (raymarch steps, light batch size, device)."""
+
+    def __init__(self, model: RelightableMVP, steps: int, light_batch: int = 16,
+                 device: str | torch.device = "cpu") -> None:
+        self.model = model.eval().to(device)
+        self.steps = int(steps)
+        self.light_batch = max(1, int(light_batch))
+        self.device = torch.device(device)
+
+    @torch.no_grad()
+    def geometry(self, mesh_vertices_head: np.ndarray) -> DecodedGeometry:
+        """Decode a tracked / driven mesh [V, 3] (head space, metres): boxes and opacity (batch 1).
+
+        Uses the encoder's mean code (no sampling), as at test time.
+        """
+        verts = torch.as_tensor(np.asarray(mesh_vertices_head, np.float32)[None], device=self.device)
+        mu, _ = self.model.encode(verts)
+        return self.model.decode_geometry(mu)
+
+    @torch.no_grad()
+    def summed_rgb(self, geometry: DecodedGeometry, cam_pos: np.ndarray, light_pos: np.ndarray,
+                   light_rgb: np.ndarray) -> torch.Tensor:
+        """Sum over lights of ``light_rgb[k] * rgb_voxels(light k)``, [1, P, M, M, M, 3].
+
+        ``light_pos`` [K, 3] head-space positions, ``light_rgb`` [K, 3] colours/intensities.
+        Light decodes run ``light_batch`` at a time.
+        """
+        pos = torch.as_tensor(np.asarray(light_pos, np.float32).reshape(-1, 3), device=self.device)
+        col = torch.as_tensor(np.asarray(light_rgb, np.float32).reshape(-1, 3), device=self.device)
+        cam = torch.as_tensor(np.asarray(cam_pos, np.float32).reshape(1, 3), device=self.device)
+        total = None
+        for start in range(0, len(pos), self.light_batch):
+            p, c = pos[start:start + self.light_batch], col[start:start + self.light_batch]
+            rgb = self.model.decode_rgb(_expand(geometry, len(p)), cam.expand(len(p), 3), p)  # [b, P, M, M, M, 3]
+            part = torch.einsum("bpzyxc,bc->pzyxc", rgb, c)[None]
+            total = part if total is None else total + part
+        if total is None:
+            raise ValueError("render: no lights given")
+        return total
+
+    @torch.no_grad()
+    def render_lights(self, geometry: DecodedGeometry, camera: Camera, light_pos: np.ndarray,
+                      light_rgb: np.ndarray) -> Image:
+        """The fast path: one raymarch of the light-summed voxel grids."""
+        rays_o, rays_d = camera_rays(camera, self.device)
+        rgb = self.summed_rgb(geometry, camera.center_world, light_pos, light_rgb)
+        res = raymarch(geometry.primitives(rgb), rays_o, rays_d, self.steps)
+        return _image(res.rgb[0], res.alpha[0], camera)
+
+    @torch.no_grad()
+    def render_lights_naive(self, geometry: DecodedGeometry, camera: Camera, light_pos: np.ndarray,
+                            light_rgb: np.ndarray) -> Image:
+        """The reference: decode and raymarch every light on its own, then sum the images."""
+        rays_o, rays_d = camera_rays(camera, self.device)
+        pos = np.asarray(light_pos, np.float32).reshape(-1, 3)
+        col = np.asarray(light_rgb, np.float32).reshape(-1, 3)
+        total = torch.zeros(rays_o.shape[1], 3, dtype=torch.float64, device=self.device)
+        alpha = None
+        for k in range(len(pos)):
+            rgb = self.summed_rgb(geometry, camera.center_world, pos[k:k + 1], col[k:k + 1])
+            res = raymarch(geometry.primitives(rgb), rays_o, rays_d, self.steps)
+            total += res.rgb[0].double()
+            alpha = res.alpha[0]
+        if alpha is None:
+            raise ValueError("render: no lights given")
+        return _image(total.float(), alpha, camera)
+
+
+def _image(rgb: torch.Tensor, alpha: torch.Tensor, camera: Camera) -> Image:
+    h, w = camera.height, camera.width
+    return Image(rgb.reshape(h, w, 3).cpu().numpy().astype(np.float32),
+                 alpha.reshape(h, w).cpu().numpy().astype(np.float32))

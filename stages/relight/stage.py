@@ -1,0 +1,254 @@
+"""Relight stage: renders of the trained head under environment maps, point lights, new views and expressions.
+
+Inputs: ``train`` (``models/ours``, loaded with ``avatar.io.load_trained``), ``track``
+(``meshes.npz``: the tracked head-space meshes; the first is the default expression) and
+``capture`` (``scans/scans.npz``: the actor rig that drives novel expressions).
+
+Output (every sequence in its own folder)::
+
+    <sequence>/frames/<i:06d>.exr     linear RGBA (float16), head at the origin, black backdrop
+    <sequence>/previews/<i:06d>.png   sRGB preview (exposure fixed from the first frame)
+    <sequence>/<sequence>.mp4         the previews as a video
+    renders.json                      per sequence and frame: camera, lights, mesh index, map
+    meshes.npz                        the driving meshes used ("default": [1, V, 3], "expressions")
+    metrics.json                      envmap_seconds_per_frame, naive_envmap_seconds_per_frame, ...
+
+Environment maps render with the voxel-space light sum (one raymarch per frame); the naive
+render-each-light path is timed on ``naive_timing_frames`` frames and checked to agree.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+import torch
+from pydantic import Field
+
+from pipeline.errors import ConfigError, InputError
+from pipeline.stage import Stage, StageContext, StageParams
+from scene.envmap import AdaptiveParams, BackMask, EnvMapError, EnvMapWarning, read_envmap
+from stages.relight import sequences as seq
+from stages.relight.outputs import SequenceWriter
+from stages.relight.render import HeadRenderer
+
+ASSETS = Path(__file__).resolve().parents[2] / "assets" / "envmaps"
+DEFAULT_ENVMAPS = ("blender-cc0/courtyard.exr", "blender-cc0/studio.exr", "blender-cc0/sunrise.exr")
+
+
+class RelightParams(StageParams):
+    """What to render and how."""
+
+    envmaps: tuple[str, ...] = Field(DEFAULT_ENVMAPS, description="Lat-long EXR maps, paths relative to assets/envmaps or absolute.")
+    envmap_frames: int = Field(4, ge=0, description="Frames per environment map sequence.")
+    rotate_deg_per_frame: float = Field(30.0, description="Rotation of the map about +y per frame, degrees.")
+    light_method: str = Field("uniform", description="'uniform' (the paper's ~256 directions) or 'adaptive' (importance sampled).")
+    directions: int = Field(256, ge=1, description="Uniform directions before masking and dropping.")
+    drop_fraction: float = Field(0.1, ge=0.0, lt=1.0, description="Fraction of the dimmest directions dropped (paper: 0.1).")
+    back_cone_deg: float = Field(45.0, ge=0.0, le=180.0, description="Half-angle of the masked cone around the back direction (-z).")
+    adaptive_tolerance: float = Field(0.1, gt=0.0, description="Adaptive selection: stop when the estimated error is below.")
+    light_distance_m: float = Field(50.0, gt=1.0, description="Distance at which distant (envmap) lights are placed as point lights.")
+    envmap_scale: float = Field(1.0, gt=0.0, description="Multiplier of envmap light intensities (exposure of the renders).")
+    orbit_radius_m: float = Field(3.0, ge=0.0, description="Point light orbiting the head at this radius (0 = no orbit).")
+    orbit_frames: int = Field(8, ge=0, description="Frames of the point-light orbit.")
+    falloff_reference_m: float = Field(1.0, gt=0.0, description="Distance at which the network's unit light holds (the rig's bars); point lights fall off as 1/r^2 from it.")
+    point_lights: tuple[tuple[float, float, float], ...] = Field((), description="Extra fixed point lights, head space metres, one frame each.")
+    camera_eyes: tuple[tuple[float, float, float], ...] = Field((), description="Extra camera positions, head space metres, each a frame looking at the head (key light).")
+    turntable_frames: int = Field(6, ge=0, description="Frames of the camera turntable (0 = none).")
+    dolly_zoom_frames: int = Field(6, ge=0, description="Frames of the dolly zoom (0 = none).")
+    expressions_csv: str = Field("", description="ARKit-named blendshape weight CSV to drive the head with ('' = none).")
+    expressions_obj_dir: str = Field("", description="Folder of OBJ meshes (tracked topology) to drive the head with.")
+    width_px: int = Field(96, ge=8, description="Render width in pixels.")
+    height_px: int = Field(128, ge=8, description="Render height in pixels.")
+    distance_m: float = Field(0.9, gt=0.05, description="Camera distance from the head for the default view.")
+    fov_deg: float = Field(24.0, gt=1.0, lt=170.0, description="Horizontal field of view of the default view, degrees.")
+    fps: float = Field(24.0, gt=0.0, description="Frame rate of the MP4s.")
+    light_batch: int = Field(16, ge=1, description="Lights decoded per batch in the voxel-space sum.")
+    steps_per_ray: int = Field(0, ge=0, description="Raymarch steps per ray (0 = the model's own setting).")
+    naive_timing_frames: int = Field(1, ge=0, description="Envmap frames (the first ones, over all maps) also rendered the naive way (timing and agreement check).")
+    device: str = Field("auto", description="'auto' (CUDA if present), 'cpu' or 'cuda'.")
+
+
+def resolve_envmap(name: str) -> Path:
+    """A map path as given, or relative to the shipped ``assets/envmaps``."""
+    p = Path(name)
+    return p if p.is_absolute() or p.exists() else ASSETS / name
+
+
+def _external(params: RelightParams) -> list[Path]:
+    files = [resolve_envmap(m) for m in params.envmaps]
+    files += [Path(p) for p in (params.expressions_csv, params.expressions_obj_dir) if p]
+    return files
+
+
+def _device(name: str) -> str:
+    if name == "auto":
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    if name == "cuda" and not torch.cuda.is_available():
+        raise ConfigError("relight.device: 'cuda' asked for but no CUDA device is available; use 'auto' or 'cpu'")
+    return name
+
+
+def load_inputs(ctx_inputs: dict[str, Path], params: RelightParams, device: str):
+    """The trained model, the default (first tracked) mesh and the driving meshes of novel expressions."""
+    from avatar.io import load_trained
+
+    model_dir = ctx_inputs["train"] / "models" / "ours"
+    try:
+        model, meta = load_trained(model_dir, device)
+    except (OSError, KeyError, ValueError, RuntimeError) as err:
+        raise InputError(f"{model_dir}: cannot load the trained head ({err}); re-run the train stage") from err
+    meshes_path = ctx_inputs["track"] / "meshes.npz"
+    try:
+        default_mesh = np.asarray(np.load(meshes_path)["vertices"][0], np.float32)
+    except (OSError, KeyError, ValueError, IndexError) as err:
+        raise InputError(f"{meshes_path}: no tracked meshes ({err}); re-run the track stage") from err
+    expressions = None
+    if params.expressions_csv or params.expressions_obj_dir:
+        expressions = _expression_meshes(ctx_inputs, params, default_mesh.shape[0])
+    return model, default_mesh, expressions
+
+
+def _expression_meshes(ctx_inputs: dict[str, Path], params: RelightParams, num_vertices: int) -> np.ndarray:
+    from scene.face_rig import load_face_rig
+    from stages.relight.expressions import (load_actor_rig, meshes_from_weights, read_obj_sequence,
+                                            read_weights_csv)
+
+    try:
+        if params.expressions_obj_dir:
+            return read_obj_sequence(Path(params.expressions_obj_dir), num_vertices)
+        names, neutral, offsets = load_actor_rig(ctx_inputs["capture"] / "scans" / "scans.npz")
+        rig = load_face_rig()
+        weights = read_weights_csv(Path(params.expressions_csv), rig.expression_names)
+        return meshes_from_weights(weights, rig.expression_deltas_m, neutral, offsets)
+    except ValueError as err:
+        raise InputError(str(err)) from err
+
+
+def render_sequence(ctx: StageContext, renderer: HeadRenderer, name: str, frames: list[seq.FrameSpec],
+                    meshes: np.ndarray, manifest: dict) -> list[float]:
+    """Render and write one sequence; returns seconds per frame. Frames done survive an error."""
+    writer = SequenceWriter(ctx.out / name, name, ctx.params.fps, ctx.log)
+    seconds, records = [], []
+    manifest[name] = records
+    geometry, geometry_index = None, -1
+    try:
+        with ctx.progress(len(frames), f"{name} frames") as progress:
+            for i, spec in enumerate(frames):
+                if spec.mesh_index != geometry_index:
+                    geometry, geometry_index = renderer.geometry(meshes[spec.mesh_index]), spec.mesh_index
+                start = time.perf_counter()
+                img = renderer.render_lights(geometry, spec.camera, spec.light_pos, spec.light_rgb)
+                if renderer.device.type == "cuda":
+                    torch.cuda.synchronize()
+                seconds.append(time.perf_counter() - start)
+                writer.write(i, img.rgb, img.alpha)
+                records.append({"index": i, "camera": spec.camera.to_dict(), "light_pos": spec.light_pos.tolist(),
+                                "light_rgb": spec.light_rgb.tolist(), "mesh_index": spec.mesh_index, **spec.info})
+                progress.advance(1)
+    finally:
+        writer.finish()
+        (ctx.out / "renders.json").write_text(json.dumps(manifest, indent=1))
+    return seconds
+
+
+def run(ctx: StageContext) -> None:
+    params: RelightParams = ctx.params
+    if params.light_method not in ("uniform", "adaptive"):
+        raise ConfigError(f"relight.light_method: '{params.light_method}' is not one of 'uniform', 'adaptive'")
+    device = _device(params.device)
+    model, default_mesh, expressions = load_inputs(dict(ctx.inputs), params, device)
+    steps = params.steps_per_ray or model.config.steps_per_ray
+    renderer = HeadRenderer(model, steps, params.light_batch, device)
+    view = seq.ViewSpec(params.width_px, params.height_px, params.distance_m, params.fov_deg,
+                        tuple(float(v) for v in default_mesh.mean(0)))
+    mask = BackMask(cone_half_angle_deg=params.back_cone_deg)
+    default = default_mesh[None]
+    np.savez_compressed(ctx.out / "meshes.npz", default=default,
+                        expressions=expressions if expressions is not None else np.zeros((0, *default_mesh.shape)))
+    manifest: dict = {}
+    metrics = ctx.metrics
+    envmap_seconds, directions, naive_seconds, max_diff = [], [], [], 0.0
+
+    for map_name in params.envmaps:
+        path = resolve_envmap(map_name)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always", EnvMapWarning)
+            try:
+                envmap = read_envmap(path)
+            except EnvMapError as err:
+                raise InputError(f"relight.envmaps: {err}") from err
+        for w in caught:
+            ctx.log.warning("%s", w.message)
+        frames = seq.envmap_sequence(envmap, params.envmap_frames, params.rotate_deg_per_frame, view,
+                                     method=params.light_method, directions=params.directions,
+                                     drop_fraction=params.drop_fraction,
+                                     adaptive=AdaptiveParams(tolerance=params.adaptive_tolerance), mask=mask,
+                                     light_distance_m=params.light_distance_m, scale=params.envmap_scale)
+        envmap_seconds += render_sequence(ctx, renderer, f"envmap_{envmap.name}", frames, default, manifest)
+        directions += [f.info["directions"] for f in frames]
+        geometry = renderer.geometry(default_mesh)
+        for spec in frames[:max(0, params.naive_timing_frames - len(naive_seconds))]:
+            fast = renderer.render_lights(geometry, spec.camera, spec.light_pos, spec.light_rgb)
+            start = time.perf_counter()
+            naive = renderer.render_lights_naive(geometry, spec.camera, spec.light_pos, spec.light_rgb)
+            naive_seconds.append(time.perf_counter() - start)
+            max_diff = max(max_diff, float(np.abs(fast.rgb - naive.rgb).max()))
+
+    key_pos, key_rgb = seq.key_light(view)
+    if params.orbit_radius_m > 0 and params.orbit_frames > 0:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always", seq.LightRangeWarning)
+            frames = seq.point_light_sequence(
+                seq.orbit_positions(params.orbit_radius_m, params.orbit_frames, 0.0, view.target_head), view,
+                falloff_reference_m=params.falloff_reference_m, mask=mask, what="orbit")
+        for w in caught:
+            ctx.log.warning("%s", w.message)
+        render_sequence(ctx, renderer, "point_orbit", frames, default, manifest)
+    if params.point_lights:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always", seq.LightRangeWarning)
+            frames = seq.point_light_sequence(np.asarray(params.point_lights, float), view,
+                                              falloff_reference_m=params.falloff_reference_m, mask=mask)
+        for w in caught:
+            ctx.log.warning("%s", w.message)
+        render_sequence(ctx, renderer, "point_lights", frames, default, manifest)
+    if params.camera_eyes:
+        render_sequence(ctx, renderer, "views", seq.views_sequence(np.asarray(params.camera_eyes, float), view, key_pos,
+                                                                  key_rgb), default, manifest)
+    if params.turntable_frames:
+        render_sequence(ctx, renderer, "turntable", seq.turntable_sequence(params.turntable_frames, view, key_pos,
+                                                                          key_rgb), default, manifest)
+    if params.dolly_zoom_frames:
+        render_sequence(ctx, renderer, "dolly_zoom", seq.dolly_zoom_sequence(params.dolly_zoom_frames, view, key_pos,
+                                                                            key_rgb), default, manifest)
+    if expressions is not None:
+        render_sequence(ctx, renderer, "expressions", seq.expression_sequence(expressions, view, key_pos, key_rgb),
+                        expressions, manifest)
+
+    if envmap_seconds:
+        metrics["envmap_seconds_per_frame"] = float(np.mean(envmap_seconds))
+        metrics["envmap_directions"] = float(np.mean(directions))
+        metrics["envmap_frames"] = len(envmap_seconds)
+    if naive_seconds:
+        metrics["naive_envmap_seconds_per_frame"] = float(np.mean(naive_seconds))
+        metrics["envmap_fast_naive_max_abs_diff"] = max_diff
+    metrics["frames_rendered"] = sum(len(v) for v in manifest.values())
+    ctx.log.info("relight: %d frames; envmap %.3f s/frame (naive %.3f), %.0f directions",
+                 metrics["frames_rendered"], metrics.get("envmap_seconds_per_frame", math.nan),
+                 metrics.get("naive_envmap_seconds_per_frame", math.nan), metrics.get("envmap_directions", math.nan))
+
+
+STAGE = Stage(
+    name="relight",
+    inputs=("train", "track", "capture"),
+    params=RelightParams,
+    run=run,
+    code=("scene", "avatar"),
+    external_inputs=_external,
+    doc="Render the trained head under environment maps, point lights, new views and expressions (EXR, PNG, MP4).",
+)

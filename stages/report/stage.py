@@ -1,0 +1,218 @@
+"""Stage ``report``: one self-contained HTML page a supervisor opens in a browser.
+
+It reads only what the other stages wrote (their ``metrics.json``, PNGs, and optional
+``tradeoffs/*.json`` speed-against-accuracy series) and never the ground truth itself:
+accuracy figures come from the evaluation stages' metrics.
+
+Output::
+
+    report.html        self-contained (images inlined), opens offline
+    charts/*.png       the charts, also inlined in the page
+    summary.json       every stage's merged metrics and every target's verdict
+
+A ``tradeoffs/<name>.json`` file in any stage's output adds a chart:
+``{"title", "x_label", "y_label", "points": [{"x", "y", "label"?, "series"?, "chosen"?}]}``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from pathlib import Path
+
+from pydantic import Field
+
+from pipeline.stage import Stage, StageContext, StageParams
+from stages.report.charts import stage_timings_chart, target_ratio_chart, tradeoff_chart
+from stages.report.html import Section, Table, render_document
+from stages.report.targets import TARGETS
+
+# Product stages in pipeline order, each with its evaluation stage (if any).
+STAGE_EVALS: tuple[tuple[str, str | None], ...] = (
+    ("sequence", None), ("capture", None), ("calibrate", "calibrate_eval"), ("lightcal", "lightcal_eval"),
+    ("track", "track_eval"), ("stabilize", "stabilize_eval"), ("matte", "matte_eval"),
+    ("train", None), ("relight", "relight_eval"),
+)
+SPLITS = (("novel_light", "novel light"), ("novel_perf", "novel performance"), ("novel_both", "both"))
+MEASURES = (("psnr", "PSNR (dB)"), ("mae", "MAE"), ("ssim", "SSIM"), ("lpips", "LPIPS"))
+
+
+class ReportParams(StageParams):
+    """Params of the report stage."""
+
+    title: str = Field("Relightable neural head: capture-to-relight report",
+                       description="Heading of the page.")
+    max_images_per_stage: int = Field(8, ge=0, description="At most this many PNGs shown per stage output.")
+
+
+def _read_metrics(folder: Path) -> dict[str, float]:
+    path = folder / "metrics.json"
+    if not path.is_file():
+        return {}
+    values = json.loads(path.read_text(encoding="utf-8"))
+    return {k: v for k, v in values.items() if isinstance(v, (int, float)) and not isinstance(v, bool)}
+
+
+def _fmt(value: float | None) -> str:
+    if value is None:
+        return "not measured"
+    if isinstance(value, float) and (math.isnan(value) or math.isinf(value)):
+        return str(value)
+    if value == 0 or 1e-3 <= abs(value) < 1e5:
+        return f"{value:.4g}"
+    return f"{value:.3e}"
+
+
+def merged_metrics(ctx: StageContext) -> dict[str, dict[str, float]]:
+    """Each product stage's metrics merged with its evaluation's (eval keys win on clashes)."""
+    merged = {}
+    for stage, evaluator in STAGE_EVALS:
+        metrics = _read_metrics(ctx.input(stage))
+        if evaluator:
+            metrics.update(_read_metrics(ctx.input(evaluator)))
+        merged[stage] = metrics
+    return merged
+
+
+def _targets_section(merged: dict[str, dict[str, float]], charts: Path) -> tuple[Section, list[dict]]:
+    section = Section("Accuracy against targets", "targets")
+    table = Table(["stage", "target", "metric", "measured", "bound", "verdict"], table_id="targets-table")
+    verdicts, ratio_rows = [], []
+    for target in TARGETS:
+        value, bound, passed = target.check(merged.get(target.stage, {}))
+        verdict = {None: "not measured", True: "pass", False: "FAIL"}[passed]
+        bound_text = f"{target.op} {_fmt(bound)}" + (f" ({target.bound})" if isinstance(target.bound, str) else "")
+        css = {None: "na", True: "pass", False: "fail"}[passed]
+        table.add([target.stage, target.what, target.key, _fmt(value), bound_text, verdict], ["", "", "", "", "", css])
+        verdicts.append({"stage": target.stage, "key": target.key, "value": value, "bound": bound, "passed": passed})
+        if passed is not None and value and bound and value > 0 and bound > 0:
+            ratio = value / bound if target.op == "<=" else bound / value
+            ratio_rows.append((f"{target.stage}: {target.key}", ratio, passed))
+    section.table(table)
+    if ratio_rows:
+        chart = charts / "targets.png"
+        target_ratio_chart(ratio_rows, chart)
+        section.figure(chart, "measured / target for every target with a figure")
+    return section, verdicts
+
+
+def _paper_table_section(train: dict[str, float]) -> Section:
+    section = Section("Ours vs TRAvatar* (held-out data, linear RGB)", "paper-table")
+    header = ["split"] + [f"{m} {label}" for m in ("ours", "TRAvatar*") for _, label in MEASURES]
+    table = Table(header, table_id="paper-table")
+    for split, split_label in SPLITS:
+        cells = [split_label]
+        for model in ("ours", "travatar"):
+            cells += [_fmt(train.get(f"{model}_{split}_{key}")) for key, _ in MEASURES]
+        table.add(cells)
+    section.table(table)
+    section.paragraph("Predictions for novel lights are scaled to the ground truth's exposure (least squares), "
+                      "as in the paper. Higher PSNR/SSIM and lower MAE/LPIPS are better.", "note")
+    return section
+
+
+def _stage_section(ctx: StageContext, stage: str, evaluator: str | None, metrics: dict[str, float],
+                   limit: int) -> Section:
+    section = Section(f"Stage: {stage}", f"stage-{stage}")
+    table = Table(["metric", "value"], table_id=f"metrics-{stage}")
+    for key in sorted(metrics):
+        table.add([key, _fmt(metrics[key])])
+    if metrics:
+        section.table(table)
+    else:
+        section.paragraph("This stage reported no metrics.", "note")
+    folders = [ctx.input(stage)] + ([ctx.input(evaluator)] if evaluator else [])
+    pngs = [p for folder in folders for p in sorted(folder.glob("*.png"))][:limit]
+    for png in pngs:
+        section.figure(png, f"{png.parent.name if png.parent.name != stage else stage}: {png.stem.replace('_', ' ')}")
+    return section
+
+
+def _tradeoff_charts(ctx: StageContext, charts: Path) -> list[tuple[Path, str]]:
+    made = []
+    for stage, evaluator in STAGE_EVALS:
+        for folder in [ctx.input(stage)] + ([ctx.input(evaluator)] if evaluator else []):
+            for spec_path in sorted((folder / "tradeoffs").glob("*.json")):
+                try:
+                    spec = json.loads(spec_path.read_text(encoding="utf-8"))
+                    chart = charts / f"tradeoff_{stage}_{spec_path.stem}.png"
+                    tradeoff_chart(spec["title"], spec["x_label"], spec["y_label"], spec["points"], chart)
+                except (ValueError, KeyError, TypeError) as err:
+                    ctx.log.warning("%s: not a valid trade-off series (%s); skipped", spec_path, err)
+                    continue
+                made.append((chart, spec["title"]))
+    return made
+
+
+def run(ctx: StageContext) -> None:
+    """Collect every stage's metrics and pictures into report.html."""
+    params: ReportParams = ctx.params
+    charts = ctx.out / "charts"
+    charts.mkdir()
+    merged = merged_metrics(ctx)
+
+    sections: list[Section] = []
+    glance = Section("The capture at a glance", "capture")
+    capture = merged["capture"]
+    glance_table = Table(["cameras", "frames", "full-on", "OLAT", "dropped", "seconds"], table_id="capture-table")
+    glance_table.add([_fmt(capture.get(k)) for k in
+                      ("cameras", "frames", "full_on_frames", "olat_frames", "dropped_frames", "seconds")])
+    glance.table(glance_table)
+    for name in ("contact_sheet.png", "strip.png"):
+        if (ctx.input("capture") / name).is_file():
+            glance.figure(ctx.input("capture") / name, name.removesuffix(".png").replace("_", " "))
+    sections.append(glance)
+
+    targets_section, verdicts = _targets_section(merged, charts)
+    sections.append(targets_section)
+    sections.append(_paper_table_section(merged["train"]))
+
+    tradeoffs = _tradeoff_charts(ctx, charts)
+    if tradeoffs:
+        speed = Section("Speed against accuracy", "tradeoffs")
+        for chart, title in tradeoffs:
+            speed.figure(chart, title)
+        sections.append(speed)
+
+    seconds = {}
+    for stage, evaluator in STAGE_EVALS:
+        for name in (stage, evaluator):
+            if name:
+                own = _read_metrics(ctx.input(name))
+                value = own.get("stage_seconds", own.get("seconds"))
+                if value is not None:
+                    seconds[name] = float(value)
+    timing = Section("Timings", "timings")
+    if seconds:
+        chart = charts / "timings.png"
+        stage_timings_chart(seconds, chart)
+        timing.figure(chart, "wall-clock seconds of each stage's last run")
+    timing_table = Table(["stage", "seconds"], table_id="timings-table")
+    for name, value in seconds.items():
+        timing_table.add([name, _fmt(value)])
+    timing.table(timing_table)
+    sections.append(timing)
+
+    for stage, evaluator in STAGE_EVALS:
+        sections.append(_stage_section(ctx, stage, evaluator, merged[stage], params.max_images_per_stage))
+
+    failed = sum(v["passed"] is False for v in verdicts)
+    measured = sum(v["passed"] is not None for v in verdicts)
+    subtitle = (f"subject {ctx.subject}; generated {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}; "
+                f"{measured - failed}/{measured} measured targets met")
+    (ctx.out / "report.html").write_text(render_document(params.title, subtitle, sections), encoding="utf-8")
+    (ctx.out / "summary.json").write_text(json.dumps({"metrics": merged, "targets": verdicts}, indent=1),
+                                          encoding="utf-8")
+    ctx.metrics["targets_measured"] = measured
+    ctx.metrics["targets_failed"] = failed
+    ctx.log.info("report: %d/%d measured targets met -> %s", measured - failed, measured, ctx.out / "report.html")
+
+
+STAGE = Stage(
+    name="report",
+    inputs=tuple(name for pair in STAGE_EVALS for name in pair if name),
+    params=ReportParams,
+    run=run,
+    doc="A self-contained HTML report of every stage's figures against the targets.",
+)

@@ -1,0 +1,1 @@
+"""Stage ``sequence``: OLAT order, capture pattern, frame schedule and controller program."""

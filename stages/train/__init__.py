@@ -1,0 +1,1 @@
+"""Train stage: the relightable MVP head and the TRAvatar* baseline from the capture's outputs."""

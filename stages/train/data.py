@@ -1,0 +1,200 @@
+"""The training data of the train stage, read from the upstream stages' outputs.
+
+Per OLAT frame: the camera images (full-on frames are only for tracking and are dropped),
+the stabilised per-frame cameras (``stabilize/cameras_head.json``, cam_from_head), the
+tracked head-space mesh (``track/meshes.npz``), the mattes (``matte/mattes``) and the lit
+bar's centre (``lightcal/bars.json``, world space) moved into head space with the tracked
+pose (``track/tracking.npz``, world_from_head). Images are resized to the training width.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.errors import InputError
+from scene.camera import Camera, Rigid
+from scene.image_io import read_exr, read_png16
+
+
+@dataclass
+class TrainData:
+    """Every usable OLAT frame of every camera, at training resolution.
+
+    Attributes:
+        frame_index: [F] capture frame indices.
+        take: [F] take name of each frame.
+        bar: [F] lit bar id of each frame.
+        camera_names: [C] camera ids.
+        images: [F, C, H, W, 3] linear RGB float32.
+        mattes: [F, C, H, W] alpha float32.
+        rays_o, rays_d: [F, C, H, W, 3] head-space ray origins and unit directions, float32.
+        cam_pos_head: [F, C, 3] camera centres in head space, metres.
+        light_pos_head: [F, 3] lit bar centre in head space, metres.
+        light_pos_world: [B, 3] every bar's centre in world space (row = bar id).
+        head_t_world: [F, 3] head origin in world space.
+        vertices: [F, V, 3] tracked head-space meshes, metres.
+        triangles: [T, 3] mesh triangles.
+    """
+
+    frame_index: np.ndarray
+    take: np.ndarray
+    bar: np.ndarray
+    camera_names: list[str]
+    images: np.ndarray
+    mattes: np.ndarray
+    rays_o: np.ndarray
+    rays_d: np.ndarray
+    cam_pos_head: np.ndarray
+    light_pos_head: np.ndarray
+    light_pos_world: np.ndarray
+    head_t_world: np.ndarray
+    vertices: np.ndarray
+    triangles: np.ndarray
+
+    @property
+    def num_bars(self) -> int:
+        return int(self.light_pos_world.shape[0])
+
+
+def _read_json(path: Path) -> dict:
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError) as err:
+        raise InputError(f"{path}: cannot read ({err}); re-run the stage that writes it") from err
+
+
+def _load_npz(path: Path, keys: tuple[str, ...]) -> dict[str, np.ndarray]:
+    try:
+        with np.load(path, allow_pickle=False) as npz:
+            missing = [k for k in keys if k not in npz.files]
+            if missing:
+                raise InputError(f"{path}: missing arrays {missing}; re-run the stage that writes it")
+            return {k: npz[k] for k in npz.files}
+    except OSError as err:
+        raise InputError(f"{path}: cannot read ({err}); re-run the stage that writes it") from err
+
+
+def _stabilised_cameras(path: Path) -> dict[int, dict[str, Camera]]:
+    """frame index -> camera name -> Camera whose ``cam_from_world`` is cam_from_head."""
+    data = _read_json(path)
+    frames = data.get("frames")
+    if frames is None:
+        raise InputError(f"{path}: no 'frames' list; re-run stabilize")
+    if isinstance(frames, dict):
+        frames = [{"index": int(k), "cameras": v} for k, v in frames.items()]
+    result: dict[int, dict[str, Camera]] = {}
+    for entry in frames:
+        cams = entry["cameras"]
+        items = cams.values() if isinstance(cams, dict) else cams
+        per_frame = {}
+        for d in items:
+            d = dict(d)
+            if "cam_from_head" in d:
+                d["cam_from_world"] = d.pop("cam_from_head")
+            per_frame[str(d["name"])] = Camera.from_dict(d)
+        result[int(entry["index"])] = per_frame
+    return result
+
+
+def _resize(img: np.ndarray, width: int, height: int) -> np.ndarray:
+    import cv2
+
+    if img.shape[1] == width and img.shape[0] == height:
+        return img
+    return cv2.resize(img, (width, height), interpolation=cv2.INTER_AREA)
+
+
+def load_train_data(inputs: dict[str, Path], image_width_px: int, log, max_frames: int = 0) -> TrainData:
+    """Read the training data from the upstream folders (never from ``capture.truth``)."""
+    capture, stabilize, track = inputs["capture"], inputs["stabilize"], inputs["track"]
+    matte, lightcal = inputs["matte"], inputs["lightcal"]
+    manifest = _read_json(capture / "manifest.json")
+    bars_json = _read_json(lightcal / "bars.json")
+    bars = {int(b["id"]): np.asarray(b["center_world"], np.float64) for b in bars_json["bars"]}
+    num_bars = max(int(manifest.get("bars", 0)), max(bars) + 1 if bars else 0)
+    light_world = np.full((num_bars, 3), np.nan)
+    for bar_id, centre in bars.items():
+        light_world[bar_id] = centre
+    tracking = _load_npz(track / "tracking.npz", ("index", "world_from_head_R", "world_from_head_t"))
+    meshes = _load_npz(track / "meshes.npz", ("vertices",))
+    mesh_index = meshes.get("index", tracking["index"])
+    if len(mesh_index) != len(meshes["vertices"]):
+        raise InputError(f"{track / 'meshes.npz'}: {len(meshes['vertices'])} meshes but {len(mesh_index)} frame "
+                         "indices; re-run track")
+    if "faces" in meshes:
+        faces = meshes["faces"]
+    else:
+        faces = _load_npz(capture / "scans" / "scans.npz", ("faces",))["faces"]
+    from avatar.layout import triangulate
+
+    triangles = triangulate(faces)
+    mesh_row = {int(i): r for r, i in enumerate(mesh_index)}
+    pose_row = {int(i): r for r, i in enumerate(tracking["index"])}
+    cams_head = _stabilised_cameras(stabilize / "cameras_head.json")
+    camera_names = [str(c) for c in manifest["cameras"]]
+    frames = []
+    for f in manifest["frames"]:
+        light = f.get("light")
+        if light == "F" or light is None or f.get("status", "ok") != "ok":
+            continue
+        idx = int(f["index"])
+        bar = int(light)
+        if idx not in mesh_row or idx not in pose_row or idx not in cams_head:
+            log.warning("frame %d: no tracked mesh, pose or stabilised camera; skipped", idx)
+            continue
+        if bar >= num_bars or not np.isfinite(light_world[bar]).all():
+            log.warning("frame %d: bar %d has no calibrated position in lightcal/bars.json; skipped", idx, bar)
+            continue
+        frames.append((idx, str(f.get("take", "")), bar))
+    if max_frames and len(frames) > max_frames:
+        pick = np.linspace(0, len(frames) - 1, max_frames).round().astype(int)
+        frames = [frames[i] for i in pick]
+    if not frames:
+        raise InputError(f"{capture / 'manifest.json'}: no usable OLAT frames (status ok, tracked, "
+                         "with a calibrated bar); check the capture and the track stage")
+    width0, height0 = int(manifest["width"]), int(manifest["height"])
+    scale = image_width_px / width0 if image_width_px else 1.0
+    width, height = int(round(width0 * scale)), int(round(height0 * scale))
+    nf, nc = len(frames), len(camera_names)
+    images = np.zeros((nf, nc, height, width, 3), np.float32)
+    mattes = np.zeros((nf, nc, height, width), np.float32)
+    rays_o = np.zeros((nf, nc, height, width, 3), np.float32)
+    rays_d = np.zeros((nf, nc, height, width, 3), np.float32)
+    cam_pos = np.zeros((nf, nc, 3), np.float32)
+    light_head = np.zeros((nf, 3), np.float32)
+    head_t = np.zeros((nf, 3), np.float32)
+    verts = np.zeros((nf,) + meshes["vertices"].shape[1:], np.float32)
+    for i, (idx, _take, bar) in enumerate(frames):
+        row = pose_row[idx]
+        world_from_head = Rigid(np.asarray(tracking["world_from_head_R"][row], np.float64),
+                                np.asarray(tracking["world_from_head_t"][row], np.float64))
+        light_head[i] = world_from_head.inverse().apply(light_world[bar])
+        head_t[i] = world_from_head.t
+        verts[i] = meshes["vertices"][mesh_row[idx]]
+        for j, name in enumerate(camera_names):
+            cam = cams_head[idx].get(name)
+            if cam is None:
+                raise InputError(f"{stabilize / 'cameras_head.json'}: frame {idx} has no camera '{name}'; re-run stabilize")
+            img_path = capture / "frames" / name / f"{idx:06d}.exr"
+            matte_path = matte / "mattes" / name / f"{idx:06d}.png"
+            try:
+                img = read_exr(img_path)[..., :3]
+                alpha = read_png16(matte_path)
+            except (ValueError, OSError) as err:
+                raise InputError(f"{err}; frame {idx}, camera {name}: re-run capture / matte") from err
+            images[i, j] = _resize(img, width, height)
+            mattes[i, j] = _resize(alpha, width, height)
+            cam_small = cam.scaled(width / cam.width)
+            o, d = cam_small.image_rays()
+            rays_o[i, j], rays_d[i, j] = o, d
+            cam_pos[i, j] = cam_small.center_world
+    log.info("train data: %d OLAT frames x %d cameras at %dx%d px", nf, nc, width, height)
+    return TrainData(
+        frame_index=np.array([f[0] for f in frames]), take=np.array([f[1] for f in frames]),
+        bar=np.array([f[2] for f in frames]), camera_names=camera_names, images=images, mattes=mattes,
+        rays_o=rays_o, rays_d=rays_d, cam_pos_head=cam_pos, light_pos_head=light_head,
+        light_pos_world=light_world.astype(np.float32), head_t_world=head_t, vertices=verts, triangles=triangles)

@@ -1,0 +1,80 @@
+"""Held-out splits made by the train stage: novel light, novel performance, both."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import ConvexHull
+
+from avatar.travatar import direction_uv
+
+SPLITS = ("novel_light", "novel_perf", "novel_both")
+
+
+@dataclass(frozen=True)
+class Splits:
+    """Frame masks [F] of each split and the held-out bars and take."""
+
+    train: np.ndarray
+    novel_light: np.ndarray
+    novel_perf: np.ndarray
+    novel_both: np.ndarray
+    held_out_bars: tuple[int, ...]
+    held_out_take: str
+
+    def mask(self, name: str) -> np.ndarray:
+        return getattr(self, name)
+
+
+def interior_bars(bar_dirs: dict[int, np.ndarray], count: int, preferred: set[int] | None = None) -> list[int]:
+    """``count`` bars inside the convex hull of all bar directions, far from its edge and from each other.
+
+    Interior bars keep the held-out lights inside the training lights' hull, so that
+    TRAvatar*'s interpolation is defined and the comparison is a fair interpolation test.
+    """
+    ids = sorted(bar_dirs)
+    uv = direction_uv(np.stack([bar_dirs[i] for i in ids]))  # [B, 2]
+    hull = ConvexHull(uv)
+    # Distance of every bar to the hull's boundary (the hull equations are unit-normal half-planes).
+    depth = -(uv @ hull.equations[:, :2].T + hull.equations[:, 2]).max(-1)  # [B] >= 0 inside
+    candidates = [i for i in range(len(ids)) if i not in set(hull.vertices) and depth[i] > 1e-6]
+    # Prefer bars lit in both the training and the held-out take, so that every split has frames.
+    good = [i for i in candidates if preferred is None or ids[i] in preferred]
+    if len(good) >= count:
+        candidates = good
+    chosen: list[int] = []
+    while candidates and len(chosen) < count:
+        def score(i: int) -> float:
+            spread = min((np.linalg.norm(uv[i] - uv[j]) for j in chosen), default=np.inf)
+            return min(depth[i], 0.5 * spread)
+        best = max(candidates, key=score)
+        chosen.append(best)
+        candidates.remove(best)
+    return sorted(ids[i] for i in chosen)
+
+
+def make_splits(take: np.ndarray, bar: np.ndarray, bar_dirs: dict[int, np.ndarray], held_out_bars: int,
+                held_out_take: str, held_out_fraction: float) -> Splits:
+    """Masks over frames: training, novel light (3 interior bars), novel performance (a take), both.
+
+    ``held_out_take`` empty: the last take of the capture if it has several, else the last
+    ``held_out_fraction`` of the frames.
+    """
+    takes = list(dict.fromkeys(take.tolist()))
+    if held_out_take:
+        perf = take == held_out_take
+        name = held_out_take
+    elif len(takes) > 1:
+        name = takes[-1]
+        perf = take == name
+    else:
+        cut = int(round(len(take) * (1.0 - held_out_fraction)))
+        perf = np.arange(len(take)) >= cut
+        name = f"{takes[0] if takes else ''}[{cut}:]"
+    both_takes = set(bar[perf].tolist()) & set(bar[~perf].tolist())
+    held_bars = interior_bars({b: d for b, d in bar_dirs.items() if b in set(bar.tolist())}, held_out_bars,
+                              both_takes)
+    light = np.isin(bar, held_bars)
+    return Splits(train=~perf & ~light, novel_light=~perf & light, novel_perf=perf & ~light,
+                  novel_both=perf & light, held_out_bars=tuple(int(b) for b in held_bars), held_out_take=name)

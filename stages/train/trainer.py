@@ -1,0 +1,276 @@
+"""The optimisation loop of one model (ours or TRAvatar*): sampling, losses, checkpoints, rollback.
+
+Randomness comes from one ``torch.Generator`` whose state is checkpointed with the model and
+the optimiser, so a killed run resumes from its last checkpoint and replays exactly the
+iterations an uninterrupted run would have done. A NaN or a loss spike restores the last
+good state (model and optimiser) with a warning and halves the learning rate; the sampler
+goes on, so the offending batch is not replayed.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import logging
+import math
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from avatar.model import RelightableMVP, kl_divergence
+from avatar.raymarch import raymarch
+from avatar.travatar import LightBasis, interpolated_rgb
+
+
+@dataclass(frozen=True)
+class LossWeights:
+    """The paper's loss weights."""
+
+    pho: float = 1.0
+    geo: float = 0.1
+    vol: float = 0.01
+    kld: float = 0.001
+    mat: float = 0.1
+
+
+@dataclass
+class TrainTensors:
+    """The training data as tensors on the training device (flattened pixels)."""
+
+    images: torch.Tensor  # [F, C, H*W, 3]
+    mattes: torch.Tensor  # [F, C, H*W]
+    rays_o: torch.Tensor  # [F, C, H*W, 3]
+    rays_d: torch.Tensor  # [F, C, H*W, 3]
+    pixel_weights: torch.Tensor  # [F, C, H*W] ray sampling weights (foreground-heavy)
+    cam_pos: torch.Tensor  # [F, C, 3]
+    light_pos: torch.Tensor  # [F, 3]
+    bar: torch.Tensor  # [F] long
+    guide_vertices: torch.Tensor  # [F, U, 3]
+    height: int
+    width: int
+
+
+@dataclass
+class TrainState:
+    """Everything a checkpoint holds besides the model and optimiser."""
+
+    iteration: int = 0
+    train_seconds: float = 0.0
+    loss_ema: float = float("nan")
+    lr: float = 0.0
+    rollbacks: int = 0
+    curve: list = field(default_factory=list)  # [(iteration, train_seconds, novel-light PSNR dB)]
+
+
+class Renderer:
+    """Decodes and raymarches one model kind for given frames, cameras and lights."""
+
+    def __init__(self, model: RelightableMVP, kind: str, basis: LightBasis | None, basis_bars: list[int]) -> None:
+        """``basis_bars``: the training bars (TRAvatar*'s light basis, in order; the bars with a learnt intensity)."""
+        self.model, self.kind, self.basis = model, kind, basis
+        self.basis_index = {b: i for i, b in enumerate(basis_bars)}
+
+    def rgb(self, geometry, cam_pos: torch.Tensor, light_pos: torch.Tensor, bar: torch.Tensor,
+            intensity: torch.Tensor) -> torch.Tensor:
+        """RGB voxels for a batch: ours from the light position, TRAvatar* from its basis."""
+        if self.kind == "ours":
+            return self.model.decode_rgb(geometry, cam_pos, light_pos, intensity=intensity)
+        bars = bar.tolist()
+        if all(b in self.basis_index for b in bars):
+            idx = np.array([self.basis_index[b] for b in bars])
+            w = self.basis.one_hot(idx)
+            weights = torch.as_tensor(w, dtype=cam_pos.dtype, device=cam_pos.device)
+            return self.model.decode_rgb(geometry, cam_pos, light_weights=weights, intensity=intensity)
+        w = self.basis.weights(light_pos.detach().cpu().numpy())
+        weights = torch.as_tensor(w, dtype=cam_pos.dtype, device=cam_pos.device)
+        return interpolated_rgb(self.model, geometry, cam_pos, weights, intensity)
+
+    @torch.no_grad()
+    def render_images(self, t: TrainTensors, pairs: list[tuple[int, int]], light_pos: torch.Tensor | None = None,
+                      bar: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """Full images [K, H, W, 3] and opacity [K, H, W] for (frame, camera) pairs; deterministic (z = mu)."""
+        rgbs, alphas = [], []
+        for f, c in pairs:
+            mu, _ = self.model.encode(t.guide_vertices[f:f + 1])
+            geo = self.model.decode_geometry(mu)
+            lp = t.light_pos[f:f + 1] if light_pos is None else light_pos[None]
+            b = t.bar[f:f + 1]
+            # Bars never seen in training (held-out lights) have no learnt intensity: use 1.
+            known = torch.as_tensor([int(x) in self.basis_index for x in b.tolist()], device=b.device)
+            b_eff = torch.where(known, b, torch.full_like(b, -1))
+            intensity = self.model.bar_intensity(b_eff)
+            rgb = self.rgb(geo, t.cam_pos[f, c][None], lp, b_eff, intensity)
+            res = raymarch(geo.primitives(rgb), t.rays_o[f, c][None], t.rays_d[f, c][None],
+                           self.model.config.steps_per_ray)
+            rgbs.append(res.rgb.view(t.height, t.width, 3))
+            alphas.append(res.alpha.view(t.height, t.width))
+        return torch.stack(rgbs), torch.stack(alphas)
+
+
+def _atomic_save(obj: dict, path: Path) -> None:
+    tmp = path.with_name(path.name + f".tmp{os.getpid()}")
+    torch.save(obj, tmp)
+    os.replace(tmp, path)
+
+
+class ModelTrainer:
+    """Trains one model on the training frames; checkpoints under ``ckpt_path``."""
+
+    def __init__(self, renderer: Renderer, tensors: TrainTensors, train_frames: np.ndarray, *, iterations: int,
+                 batch_size: int, rays_per_image: int, lr: float, weights: LossWeights, seed: int,
+                 ckpt_path: Path, checkpoint_every: int, spike_factor: float, log: logging.Logger,
+                 curve_every: int = 0, curve_fn: Callable[[], float] | None = None, writer=None) -> None:
+        self.r, self.t = renderer, tensors
+        self.model = renderer.model
+        self.train_frames = np.asarray(train_frames)
+        self.iterations, self.batch_size, self.rays = iterations, batch_size, rays_per_image
+        self.weights, self.ckpt_path, self.checkpoint_every = weights, ckpt_path, checkpoint_every
+        self.spike_factor, self.log = spike_factor, log
+        self.curve_every, self.curve_fn, self.writer = curve_every, curve_fn, writer
+        self.optim = torch.optim.Adam(self.model.parameters(), lr=lr)
+        self.gen = torch.Generator(device="cpu")
+        self.gen.manual_seed(seed)
+        self.state = TrainState(lr=lr)
+        self._good: dict | None = None
+
+    # ---- checkpoints -------------------------------------------------------------------------
+    def _snapshot(self) -> dict:
+        return {"model": self.model.state_dict(), "optim": self.optim.state_dict(),
+                "rng": self.gen.get_state(), "state": json.dumps(self.state.__dict__)}
+
+    def save_checkpoint(self) -> None:
+        snap = self._snapshot()
+        _atomic_save(snap, self.ckpt_path)
+        self._good = copy.deepcopy({"model": snap["model"], "optim": snap["optim"]})
+
+    def try_resume(self) -> bool:
+        """Load the checkpoint if there is one; a corrupt one is ignored with a warning."""
+        if not self.ckpt_path.exists():
+            return False
+        try:
+            snap = torch.load(self.ckpt_path, map_location="cpu", weights_only=True)
+            self.model.load_state_dict(snap["model"])
+            self.optim.load_state_dict(snap["optim"])
+            self.gen.set_state(snap["rng"])
+            self.state = TrainState(**json.loads(snap["state"]))
+        except (OSError, RuntimeError, KeyError, ValueError, TypeError) as err:
+            self.log.warning("%s: unreadable checkpoint (%s); starting this model from scratch", self.ckpt_path, err)
+            return False
+        self._set_lr(self.state.lr)
+        self._good = copy.deepcopy({"model": self.model.state_dict(), "optim": self.optim.state_dict()})
+        self.log.info("%s: resumed at iteration %d", self.r.kind, self.state.iteration)
+        return True
+
+    def _set_lr(self, lr: float) -> None:
+        for group in self.optim.param_groups:
+            group["lr"] = lr
+
+    def _rollback(self, reason: str) -> None:
+        self.state.rollbacks += 1
+        self.state.lr *= 0.5
+        self.log.warning("%s iteration %d: %s; rolled back to the last good checkpoint, lr -> %.3g",
+                         self.r.kind, self.state.iteration, reason, self.state.lr)
+        if self._good is not None:
+            self.model.load_state_dict(self._good["model"])
+            self.optim.load_state_dict(self._good["optim"])
+        self._set_lr(self.state.lr)
+
+    # ---- one iteration -------------------------------------------------------------------------
+    def sample_batch(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Frames [B], cameras [B] and pixel indices [B, R], from the checkpointed generator."""
+        t, g = self.t, self.gen
+        pick = torch.randint(len(self.train_frames), (self.batch_size,), generator=g)
+        frames = torch.as_tensor(self.train_frames)[pick]
+        cams = torch.randint(t.images.shape[1], (self.batch_size,), generator=g)
+        w = t.pixel_weights[frames, cams].cpu()  # [B, H*W]
+        pix = torch.multinomial(w, self.rays, replacement=True, generator=g)  # [B, R]
+        return frames, cams, pix
+
+    def losses(self, frames: torch.Tensor, cams: torch.Tensor, pix: torch.Tensor,
+               eps: torch.Tensor) -> tuple[torch.Tensor, dict[str, float]]:
+        """Weighted loss and its terms for one batch."""
+        t, model = self.t, self.model
+        dev = t.images.device
+        frames, cams, pix = frames.to(dev), cams.to(dev), pix.to(dev)
+        fi, ci = frames[:, None], cams[:, None]
+        gt = t.images[fi, ci, pix]  # [B, R, 3]
+        matte = t.mattes[fi, ci, pix]  # [B, R]
+        ro, rd = t.rays_o[fi, ci, pix], t.rays_d[fi, ci, pix]
+        target_verts = t.guide_vertices[frames]  # [B, U, 3]
+        mu, logvar = model.encode(target_verts)
+        z = mu + eps.to(dev) * torch.exp(0.5 * logvar)
+        geo = model.decode_geometry(z)
+        bar = t.bar[frames]
+        rgb = self.r.rgb(geo, t.cam_pos[frames, cams], t.light_pos[frames], bar, model.bar_intensity(bar))
+        res = raymarch(geo.primitives(rgb), ro, rd, model.config.steps_per_ray)
+        pho = F.mse_loss(res.rgb, gt)
+        geo_loss = F.mse_loss(geo.guide_vertices, target_verts) / 1e-4  # cm^2
+        vol = model.volume_prior(geo)
+        kld = kl_divergence(mu, logvar)
+        mat = (res.alpha - matte).abs().mean()
+        w = self.weights
+        total = w.pho * pho + w.geo * geo_loss + w.vol * vol + w.kld * kld + w.mat * mat
+        psnr = float(-10.0 * torch.log10(pho.detach().clamp(min=1e-12)))
+        return total, {"loss": float(total.detach()), "pho": float(pho.detach()), "geo": float(geo_loss.detach()),
+                       "vol": float(vol.detach()),
+                       "kld": float(kld.detach()), "mat": float(mat.detach()), "psnr": psnr}
+
+    def step(self) -> dict[str, float]:
+        frames, cams, pix = self.sample_batch()
+        eps = torch.randn(self.batch_size, self.model.config.latent_dim, generator=self.gen)
+        total, terms = self.losses(frames, cams, pix, eps)
+        bad = not math.isfinite(terms["loss"])
+        warm = self.state.iteration > 50 and math.isfinite(self.state.loss_ema)
+        if not bad and warm and terms["loss"] > self.spike_factor * self.state.loss_ema:
+            self._rollback(f"loss spike {terms['loss']:.4g} > {self.spike_factor} x running mean "
+                           f"{self.state.loss_ema:.4g}")
+            return terms
+        if bad:
+            self._rollback("loss is not finite")
+            return terms
+        self.optim.zero_grad(set_to_none=True)
+        total.backward()
+        grads_ok = all(p.grad is None or bool(torch.isfinite(p.grad).all()) for p in self.model.parameters())
+        if not grads_ok:
+            self._rollback("gradient is not finite")
+            return terms
+        self.optim.step()
+        ema = self.state.loss_ema
+        self.state.loss_ema = terms["loss"] if not math.isfinite(ema) else 0.95 * ema + 0.05 * terms["loss"]
+        return terms
+
+    # ---- the loop ------------------------------------------------------------------------------
+    def run(self, progress) -> TrainState:
+        """Train to ``iterations`` (resuming if a checkpoint exists); returns the final state."""
+        self.try_resume()
+        if self.state.iteration == 0 and self.curve_fn is not None:
+            self.state.curve.append((0, 0.0, self.curve_fn()))
+        progress.advance(self.state.iteration)
+        while self.state.iteration < self.iterations:
+            tick = time.perf_counter()
+            self.model.train()
+            terms = self.step()
+            self.state.iteration += 1
+            self.state.train_seconds += time.perf_counter() - tick
+            it = self.state.iteration
+            if self.writer is not None and it % 10 == 0:
+                for key, value in terms.items():
+                    self.writer.add_scalar(f"{self.r.kind}/{key}", value, it)
+            if self.curve_fn is not None and self.curve_every and it % self.curve_every == 0:
+                self.model.eval()
+                value = self.curve_fn()
+                self.state.curve.append((it, self.state.train_seconds, value))
+                if self.writer is not None:
+                    self.writer.add_scalar(f"{self.r.kind}/heldout_psnr", value, it)
+            if it % self.checkpoint_every == 0 or it == self.iterations:
+                self.save_checkpoint()
+            progress.advance(1, model=self.r.kind, loss=terms["loss"], psnr=terms["psnr"],
+                             it_per_s=it / max(self.state.train_seconds, 1e-9))
+        self.model.eval()
+        return self.state

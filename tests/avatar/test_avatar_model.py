@@ -1,0 +1,144 @@
+"""The relightable MVP model: sizes, layout, decoding, save/load, metrics, LPIPS, TRAvatar* interpolation."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from avatar.config import AvatarConfig
+from avatar.io import load_trained, save_trained
+from avatar.layout import build_layout
+from avatar.metrics import exposure_scale, psnr, ssim
+from avatar.model import RelightableMVP
+from avatar.raymarch import raymarch
+from avatar.travatar import LightBasis, direction_uv
+
+SMALL = AvatarConfig(prims_per_side=8, voxels_per_side=4, latent_dim=8, encoder_hidden=32, base_channels=16,
+                     rgb_channels=(16, 12), alpha_channels=(8, 4), geometry_channels=8, steps_per_ray=12)
+
+
+def _sphere(n_lat: int = 24, n_lon: int = 48, radius: float = 0.1) -> tuple[np.ndarray, np.ndarray]:
+    import trimesh
+
+    mesh = trimesh.creation.uv_sphere(radius=radius, count=(n_lat, n_lon))
+    return np.asarray(mesh.vertices, np.float32), np.asarray(mesh.faces, np.int64)
+
+
+@pytest.fixture(scope="module")
+def model() -> RelightableMVP:
+    verts, faces = _sphere()
+    torch.manual_seed(0)
+    return RelightableMVP(SMALL, build_layout(verts, faces, SMALL.prims_per_side), num_bars=4)
+
+
+def test_paper_config_is_the_papers():
+    paper = AvatarConfig.paper()
+    assert paper.num_prims == 4096 and paper.voxels_per_side == 16 and paper.latent_dim == 256
+    assert paper.appearance_layers == 7 and paper.rgb_channels == (256, 128, 128, 64, 64, 32, 48)
+    assert AvatarConfig.tiny().appearance_layers == 4
+    with pytest.raises(ValueError):
+        AvatarConfig(prims_per_side=16, voxels_per_side=8, rgb_channels=(8, 8, 24), alpha_channels=(8, 8, 8))
+
+
+def test_layout_anchors_lie_on_the_outer_surface():
+    verts, faces = _sphere()
+    layout = build_layout(verts, faces, 8)
+    tri = layout.mean_guide_vertices[layout.anchor_tris]  # [P, 3, 3]
+    points = (tri * layout.anchor_bary[..., None]).sum(1)
+    radius = np.linalg.norm(points, axis=-1)
+    assert np.all(radius > 0.095) and np.all(radius < 0.1001)
+    assert points[:, 2].mean() > 0.0  # the grid faces +z (the cameras)
+    assert len(layout.guide_vertex_ids) <= 3 * 64
+
+
+def test_decoded_primitives_sit_on_the_guide_mesh(model):
+    mesh = torch.as_tensor(_sphere()[0])[None]
+    mu, logvar = model.encode(mesh)
+    geo = model.decode_geometry(mu)
+    assert geo.centre.shape == (1, 64, 3) and geo.density.shape == (1, 64, 4, 4, 4)
+    # At initialisation the deltas are zero: centres are on the sphere, boxes have their base size.
+    assert torch.allclose(geo.centre.norm(dim=-1), torch.full((1, 64), 0.1), atol=5e-3)
+    torch.testing.assert_close(geo.half_extent[0, :, 0], model.half_extent_m)
+    eye = torch.eye(3).expand(1, 64, 3, 3)
+    torch.testing.assert_close(geo.rotation.transpose(-1, -2) @ geo.rotation, eye, atol=1e-5, rtol=0)
+
+
+def test_direction_image_is_constant_per_primitive_tile(model):
+    mu, _ = model.encode(torch.as_tensor(_sphere()[0])[None])
+    geo = model.decode_geometry(mu)
+    cam, light = torch.tensor([[0.0, 0.0, 1.0]]), torch.tensor([[0.5, 0.5, 0.5]])
+    image = model.direction_image(geo, cam, light)  # [1, 6, 32, 32]
+    tile = image[0, :, 4:8, 8:12]  # primitive (row 1, column 2)
+    assert torch.allclose(tile, tile[:, :1, :1].expand_as(tile))
+    k = 1 * 8 + 2
+    expected = torch.nn.functional.normalize(light[0] - geo.centre[0, k], dim=0)
+    torch.testing.assert_close(tile[3:, 0, 0], expected)
+    rgb = model.decode_rgb(geo, cam, light)
+    assert rgb.shape == (1, 64, 4, 4, 4, 3) and bool((rgb >= 0).all())
+
+
+def test_light_sum_in_voxel_space_equals_sum_of_renders(model):
+    """Opacity does not depend on light: summing RGB voxels of K lights then raymarching once is exact."""
+    mu, _ = model.encode(torch.as_tensor(_sphere()[0])[None])
+    geo = model.decode_geometry(mu)
+    cam = torch.tensor([[0.0, 0.0, 0.6]])
+    lights = torch.tensor([[0.5, 0.2, 0.5], [-0.4, 0.0, 0.6], [0.0, 0.6, 0.3]])
+    weights = torch.tensor([0.5, 1.5, 0.25])
+    o = cam.expand(1, 50, 3).contiguous()
+    d = torch.nn.functional.normalize(torch.randn(1, 50, 3) * 0.1 + torch.tensor([0.0, 0.0, -1.0]), dim=-1)
+    rgbs = [model.decode_rgb(geo, cam, lights[k:k + 1]) for k in range(3)]
+    summed = raymarch(geo.primitives(sum(w * x for w, x in zip(weights, rgbs))), o, d, 12).rgb
+    separate = sum(w * raymarch(geo.primitives(x), o, d, 12).rgb for w, x in zip(weights, rgbs))
+    torch.testing.assert_close(summed, separate, rtol=1e-4, atol=1e-6)
+
+
+def test_save_and_load_round_trip(model, tmp_path):
+    with torch.no_grad():
+        model.log_bar_intensity[1] = 0.3
+    save_trained(tmp_path / "m", model, "ours", {"note": 1})
+    loaded, meta = load_trained(tmp_path / "m")
+    assert meta["kind"] == "ours" and meta["note"] == 1
+    mesh = torch.as_tensor(_sphere()[0])[None]
+    a = model.decode_geometry(model.encode(mesh)[0]).centre
+    b = loaded.decode_geometry(loaded.encode(mesh)[0]).centre
+    torch.testing.assert_close(a, b)
+    assert float(loaded.bar_intensity(torch.tensor([1])).detach()) == pytest.approx(np.exp(0.3))
+
+
+def test_metrics_known_values():
+    target = torch.rand(2, 16, 16, 3)
+    noisy = target + 0.1
+    assert torch.allclose(psnr(noisy, target), torch.full((2,), 20.0), atol=1e-4)
+    assert torch.allclose(ssim(target, target), torch.ones(2))
+    assert float(ssim(noisy + torch.randn_like(noisy) * 0.2, target).max()) < 0.9
+    torch.testing.assert_close(exposure_scale(target * 0.5, target), torch.full((2,), 2.0))
+
+
+def test_lpips_is_zero_for_identical_and_grows_with_noise():
+    from avatar.lpips import DEFAULT_WEIGHTS, LPIPS
+
+    if not DEFAULT_WEIGHTS.exists():
+        pytest.skip("assets/lpips/alexnet.safetensors not present")
+    lpips = LPIPS()
+    g = torch.Generator().manual_seed(0)
+    img = torch.rand(1, 64, 64, 3, generator=g)
+    small = (img + 0.03 * torch.randn(img.shape, generator=g)).clamp(0, 1)
+    large = (img + 0.3 * torch.randn(img.shape, generator=g)).clamp(0, 1)
+    assert float(lpips(img, img)) < 1e-6
+    assert 0.0 < float(lpips(img, small)) < float(lpips(img, large))
+
+
+def test_travatar_interpolation_weights():
+    az = np.deg2rad([-60, 0, 60, -30, 30, 0])
+    el = np.deg2rad([-20, -30, -20, 40, 40, 10])
+    dirs = np.stack([np.cos(el) * np.sin(az), np.sin(el), np.cos(el) * np.cos(az)], -1)
+    basis = LightBasis(dirs)
+    # A basis light reproduces its one-hot weights.
+    np.testing.assert_allclose(basis.weights(dirs[1:2]), basis.one_hot(np.array([1])), atol=1e-9)
+    # A direction inside the hull: three non-negative weights summing to one that reproduce it.
+    q_az, q_el = np.deg2rad(10.0), np.deg2rad(5.0)
+    query = np.array([[np.cos(q_el) * np.sin(q_az), np.sin(q_el), np.cos(q_el) * np.cos(q_az)]])
+    w = basis.weights(query)[0]
+    assert (w > 0).sum() <= 3 and np.all(w >= 0) and w.sum() == pytest.approx(1.0)
+    np.testing.assert_allclose(w @ direction_uv(dirs), direction_uv(query)[0], atol=1e-9)

@@ -1,0 +1,121 @@
+"""Hashing, the stat cache, commits, verification and the lock."""
+
+from __future__ import annotations
+
+import os
+import time
+from pathlib import Path
+
+import pytest
+
+from pipeline.errors import InputError, WorkspaceLocked
+from pipeline.hashing import StatCache, hash_tree, safe_join
+from pipeline.workspace import Workspace, is_read_only
+
+
+def _tree(root: Path) -> Path:
+    (root / "a").mkdir(parents=True)
+    (root / "a" / "x.bin").write_bytes(b"x" * 100)
+    (root / "y.txt").write_text("y")
+    return root
+
+
+def test_tree_digest_depends_on_content_and_names_only(tmp_path: Path) -> None:
+    d1, entries = hash_tree(_tree(tmp_path / "one"))
+    d2, _ = hash_tree(_tree(tmp_path / "two"))
+    assert d1 == d2 and [e.relpath for e in entries] == ["a/x.bin", "y.txt"]
+    (tmp_path / "two" / "y.txt").write_text("z")
+    assert hash_tree(tmp_path / "two")[0] != d1
+    os.rename(tmp_path / "one" / "y.txt", tmp_path / "one" / "w.txt")
+    assert hash_tree(tmp_path / "one")[0] != d1
+
+
+def test_stat_cache_skips_unchanged_files_and_sees_edits(tmp_path: Path) -> None:
+    root = _tree(tmp_path / "cap")
+    old = time.time() - 60
+    for path in (root / "a" / "x.bin", root / "y.txt"):
+        os.utime(path, (old, old))
+    cache = StatCache(tmp_path / "cache.sqlite")
+    first = hash_tree(root, stat_cache=cache, allow_symlinks=True)[0]
+    cache.flush()
+    warm = StatCache(tmp_path / "cache.sqlite")
+    assert hash_tree(root, stat_cache=warm, allow_symlinks=True)[0] == first
+    assert warm.hits == 2 and warm.misses == 0
+    (root / "y.txt").write_text("changed")
+    assert hash_tree(root, stat_cache=warm, allow_symlinks=True)[0] != first
+
+
+def test_symlinks(tmp_path: Path) -> None:
+    root = _tree(tmp_path / "cap")
+    (root / "inside").symlink_to(root / "y.txt")
+    hash_tree(root, allow_symlinks=True)  # inside the folder: followed
+    with pytest.raises(InputError, match="may not contain symlinks"):
+        hash_tree(root, allow_symlinks=False)
+    (tmp_path / "secret").write_text("s")
+    (root / "out").symlink_to(tmp_path / "secret")
+    with pytest.raises(InputError, match="outside its folder"):
+        hash_tree(root, allow_symlinks=True)
+    with pytest.raises(InputError, match="escapes its folder"):
+        safe_join(root, "../secret")
+    with pytest.raises(InputError, match="outside"):
+        safe_join(root, "out")
+    assert safe_join(root, "a/x.bin") == root / "a" / "x.bin"
+
+
+def test_commit_is_read_only_deduplicated_and_verifiable(tmp_path: Path) -> None:
+    ws = Workspace(tmp_path / "ws", "alice")
+    ws.ensure()
+    digest = ws.commit(_tree(ws.new_temp_dir("s")))
+    obj = ws.object_path(digest)
+    assert ws.has_object(digest) and is_read_only(obj / "y.txt")
+    again = ws.new_temp_dir("s")
+    assert ws.commit(_tree(again)) == digest and not again.exists()
+    assert ws.verify_object(digest) == []
+    os.chmod(obj / "a" / "x.bin", 0o644)
+    (obj / "a" / "x.bin").write_bytes(b"x" * 99 + b"y")
+    problems = ws.verify_object(digest)
+    assert problems == ["a/x.bin: content changed"]
+    ws.mark_corrupt(digest, problems)
+    assert not ws.has_object(digest)
+    assert ws.commit(_tree(ws.new_temp_dir("s"))) == digest  # rebuilt, replaces the corrupt copy
+    assert ws.has_object(digest) and ws.verify_object(digest) == []
+    link_dir = ws.new_temp_dir("s")
+    (link_dir / "l").symlink_to("/etc/hostname")
+    with pytest.raises(InputError, match="symlinks"):
+        ws.commit(link_dir)
+
+
+def test_lock_is_exclusive_and_names_holder(tmp_path: Path) -> None:
+    ws = Workspace(tmp_path / "ws", "alice")
+    other = Workspace(tmp_path / "ws", "bob")
+    with ws.lock():
+        with pytest.raises(WorkspaceLocked, match=f"PID {os.getpid()}"):
+            ws.lock().acquire()
+        with other.lock():
+            pass
+    with ws.lock():
+        pass
+
+
+def test_odd_file_names_round_trip_through_the_manifest(tmp_path: Path) -> None:
+    ws = Workspace(tmp_path / "ws", "alice")
+    ws.ensure()
+    folder = ws.new_temp_dir("odd")
+    for name in ("tab\there", "new\nline", "ünï cödé", os.fsdecode(b"raw\xffbyte")):
+        (folder / name).write_bytes(os.fsencode(name))
+    digest = ws.commit(folder)
+    assert ws.verify_object(digest) == []
+    assert len(ws.manifest(digest)) == 4
+
+
+def test_stat_cache_skips_undecodable_names(tmp_path: Path) -> None:
+    root = tmp_path / "cap"
+    root.mkdir()
+    odd = root / os.fsdecode(b"raw\xffbyte")
+    odd.write_bytes(b"x")
+    old = time.time() - 60
+    os.utime(odd, (old, old))
+    cache = StatCache(tmp_path / "cache.sqlite")
+    first = hash_tree(root, stat_cache=cache, allow_symlinks=True)[0]
+    cache.flush()
+    assert hash_tree(root, stat_cache=StatCache(tmp_path / "cache.sqlite"), allow_symlinks=True)[0] == first

@@ -1,0 +1,7 @@
+"""Arithmetic used by the toy ``double`` stage (declared in its ``Stage.code``)."""
+
+
+def apply(item: tuple[float, int, str]) -> float:
+    """Scale or shift one number: ``(value, factor, mode)``."""
+    value, factor, mode = item
+    return value * factor if mode == "mul" else value + factor

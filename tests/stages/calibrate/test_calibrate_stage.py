@@ -1,0 +1,137 @@
+"""calibrate / calibrate_eval on a small virtual-studio take: accuracy and bad input."""
+
+from __future__ import annotations
+
+import json
+import logging
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pipeline.errors import InputError
+from pipeline.testing import run_stage_for_test
+from scene.camera import load_cameras
+from scene.image_io import read_exr, write_exr
+from stages.calibrate.eval_stage import STAGE as EVAL_STAGE
+from stages.calibrate.eval_stage import camera_errors, umeyama
+from stages.calibrate.stage import STAGE
+
+
+@pytest.fixture(scope="module")
+def calibrated(calib_capture, tmp_path_factory):
+    capture, truth = calib_capture
+    work = tmp_path_factory.mktemp("calibrate")
+    out = run_stage_for_test(STAGE, work, inputs={"capture": capture})
+    ev = run_stage_for_test(EVAL_STAGE, work, inputs={"calibrate": out, "capture.truth": truth})
+    return out, {**json.loads((out / "metrics.json").read_text()), **json.loads((ev / "metrics.json").read_text())}
+
+
+def _copy_capture(capture: Path, dst: Path) -> Path:
+    shutil.copytree(capture, dst)
+    return dst
+
+
+def test_accuracy_against_ground_truth(calibrated):
+    # 5 cameras at 240x320, 14 board poses (the full rig at 24+ poses does better: benchmarks/bench_calibration.py)
+    _, m = calibrated
+    assert m["reproj_rms_px"] <= 0.12
+    assert m["focal_err_pct_max"] <= 0.25
+    assert m["principal_err_px_max"] <= 4.0
+    assert m["center_err_mm_max"] <= 3.0
+    assert m["rotation_err_deg_max"] <= 0.3
+    assert m["cameras"] == 5 and m["cameras_dropped"] == 0
+
+
+def test_outputs_colmap_model_and_report(calibrated):
+    import pycolmap
+
+    out, _ = calibrated
+    cams = {c.name: c for c in load_cameras(out / "cameras.json")}
+    rec = pycolmap.Reconstruction(str(out / "colmap" / "binary"))
+    assert rec.num_cameras() == len(cams) and rec.num_rigs() == 1
+    for image in rec.images.values():
+        cam = cams[image.name.split("/")[0]]
+        # the exported poses are the calibrated ones, in the same (studio) world
+        assert np.allclose(np.asarray(image.cam_from_world().matrix())[:, :3], cam.cam_from_world.R, atol=1e-9)
+    assert (out / "colmap" / "text" / "cameras.txt").is_file()
+    report = json.loads((out / "report.json").read_text())
+    for name in cams:
+        assert report["cameras"][name]["frames_used"] >= 4
+        assert (out / "residuals" / f"{name}.png").stat().st_size > 1000
+
+
+def test_camera_that_never_sees_the_board_fails_with_its_name(calib_capture, tmp_path):
+    capture = _copy_capture(calib_capture[0], tmp_path / "capture")
+    for path in (capture / "calib" / "charuco" / "cam02").glob("*.exr"):
+        write_exr(path, np.full_like(read_exr(path), 0.01))
+    with pytest.raises(InputError, match="cam02 never saw the board"):
+        run_stage_for_test(STAGE, tmp_path / "w", inputs={"capture": capture})
+
+
+def test_missing_camera_can_be_dropped_when_allowed(calib_capture, tmp_path):
+    capture = _copy_capture(calib_capture[0], tmp_path / "capture")
+    shutil.rmtree(capture / "calib" / "charuco" / "cam02")
+    out = run_stage_for_test(STAGE, tmp_path / "w", inputs={"capture": capture},
+                             params={"allow_missing_cameras": True})
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["cameras_dropped"] == 1 and metrics["cameras"] == 4
+    assert "cam02" not in {c.name for c in load_cameras(out / "cameras.json")}
+
+
+def test_too_few_board_frames_fails_with_camera_and_frames(calib_capture, tmp_path):
+    capture = _copy_capture(calib_capture[0], tmp_path / "capture")
+    for path in sorted((capture / "calib" / "charuco" / "cam01").glob("*.exr"))[2:]:
+        path.unlink()
+    with pytest.raises(InputError, match=r"cam01 has only \d usable board images"):
+        run_stage_for_test(STAGE, tmp_path / "w", inputs={"capture": capture})
+
+
+def test_overexposed_and_blurred_frames_are_named_and_skipped(calib_capture, tmp_path, caplog):
+    from scipy.ndimage import gaussian_filter
+
+    capture = _copy_capture(calib_capture[0], tmp_path / "capture")
+    frames = sorted((capture / "calib" / "charuco" / "cam00").glob("*.exr"))
+    over, blurred = frames[1], frames[2]
+    write_exr(over, np.minimum(read_exr(over) * 8.0, 1.0))  # clipped at the sensor's white level
+    img = read_exr(blurred)
+    write_exr(blurred, np.stack([gaussian_filter(img[..., c], 3.0) for c in range(3)], -1))
+    with caplog.at_level(logging.WARNING):
+        out = run_stage_for_test(STAGE, tmp_path / "w", inputs={"capture": capture})
+    text = caplog.text
+    assert f"cam00 frame {over.stem}: over-exposed" in text
+    assert f"cam00 frame {blurred.stem}: blurred" in text
+    frames_report = {f["frame"]: f for f in json.loads((out / "report.json").read_text())["cameras"]["cam00"]["frames"]}
+    assert not frames_report[int(over.stem)]["used"] and not frames_report[int(blurred.stem)]["used"]
+    assert json.loads((out / "metrics.json").read_text())["frames_rejected_quality"] == 2
+
+
+def test_reference_frame_not_seen_fails(calib_capture, tmp_path):
+    capture = _copy_capture(calib_capture[0], tmp_path / "capture")
+    for cam_dir in (capture / "calib" / "charuco").iterdir():
+        (cam_dir / "0000.exr").unlink(missing_ok=True)
+    with pytest.raises(InputError, match="board pose 0000 .*fixture"):
+        run_stage_for_test(STAGE, tmp_path / "w", inputs={"capture": capture})
+
+
+def test_umeyama_recovers_a_similarity():
+    rng = np.random.default_rng(0)
+    src = rng.normal(size=(6, 3))
+    from scipy.spatial.transform import Rotation
+
+    R = Rotation.from_rotvec([0.1, -0.2, 0.3]).as_matrix()
+    dst = 1.3 * src @ R.T + np.array([0.1, 0.2, -0.3])
+    s, R_est, t = umeyama(src, dst)
+    assert abs(s - 1.3) < 1e-9 and np.allclose(R_est, R) and np.allclose(t, [0.1, 0.2, -0.3])
+
+
+def test_camera_errors_zero_for_identical_and_positive_for_shifted(calib_capture):
+    from dataclasses import replace
+
+    true = {c.name: c for c in load_cameras(calib_capture[1] / "cameras.json")}
+    zero = camera_errors(true, true)
+    assert zero["focal_err_pct_max"] == 0 and zero["center_err_mm_max"] < 1e-9 and zero["rotation_err_deg_max"] < 1e-4
+    moved = {n: replace(c, fx=c.fx * 1.01, cx=c.cx + 2.0) for n, c in true.items()}
+    err = camera_errors(moved, true)
+    assert abs(err["focal_err_pct_max"] - 1.0) < 1e-9 and abs(err["principal_err_px_max"] - 2.0) < 1e-9

@@ -1,0 +1,40 @@
+"""A small randomly initialised relightable head on a sphere, for render tests."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from avatar.config import AvatarConfig
+from avatar.layout import build_layout
+from avatar.model import RelightableMVP
+
+
+def sphere_head(radius_m: float = 0.1):
+    """Vertices [V, 3] and triangles [T, 3] of a head-sized sphere at the origin."""
+    import trimesh
+
+    mesh = trimesh.creation.icosphere(subdivisions=2, radius=radius_m)
+    return np.asarray(mesh.vertices, np.float32), np.asarray(mesh.faces, np.int64)
+
+
+def tiny_model(seed: int = 0) -> tuple[RelightableMVP, np.ndarray]:
+    """A random 8x8-primitive, 4^3-voxel model and the mesh it is anchored on."""
+    torch.manual_seed(seed)
+    verts, tris = sphere_head()
+    config = AvatarConfig(prims_per_side=8, voxels_per_side=4, latent_dim=16, encoder_hidden=32,
+                          base_channels=16, rgb_channels=(16, 12), alpha_channels=(8, 4),
+                          geometry_channels=8, steps_per_ray=24)
+    layout = build_layout(verts, tris, config.prims_per_side)
+    model = RelightableMVP(config, layout, num_bars=4)
+    with torch.no_grad():  # a visibly non-trivial, light-dependent appearance
+        for p in model.rgb_branch.parameters():
+            p.mul_(3.0)
+    return model.eval(), verts
+
+
+@pytest.fixture(scope="session")
+def random_head():
+    torch.set_num_threads(1)
+    return tiny_model()

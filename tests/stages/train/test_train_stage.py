@@ -1,0 +1,137 @@
+"""The train stage on a tiny synthetic capture: outputs and metrics, loss decrease, resume, rollback."""
+
+from __future__ import annotations
+
+import json
+import logging
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from safetensors.torch import load_file
+
+from pipeline.testing import run_stage_for_test
+from stages.train import trainer as trainer_mod
+from stages.train.splits import SPLITS
+from stages.train.stage import STAGE
+
+SMALL_AVATAR = {"prims_per_side": 8, "voxels_per_side": 4, "latent_dim": 8, "encoder_hidden": 32,
+                "base_channels": 16, "rgb_channels": [16, 12], "alpha_channels": [8, 4], "geometry_channels": 8,
+                "steps_per_ray": 12}
+BASE = {"avatar": SMALL_AVATAR, "image_width_px": 24, "batch_size": 2, "rays_per_image": 64, "eval_images": 2,
+        "curve_every": 6, "curve_images": 1, "checkpoint_every": 4, "previews": 1, "threads": 1}
+
+
+@pytest.fixture(scope="module")
+def capture(tmp_path_factory) -> dict[str, Path]:
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from train_synth import make_capture
+
+    return make_capture(tmp_path_factory.mktemp("synth"), width_px=32, cameras=4, frames_per_take=(27, 9))
+
+
+def test_stage_outputs_metrics_table_and_models(capture, tmp_path):
+    out = run_stage_for_test(STAGE, tmp_path, capture, {**BASE, "iterations": 8, "baseline_iterations": 6})
+    metrics = json.loads((out / "metrics.json").read_text())
+    for key in ("iterations", "seconds", "iterations_per_second", "peak_memory_mb"):
+        assert metrics[key] > 0
+    for model in ("ours", "travatar"):
+        for split in SPLITS:
+            for name in ("psnr", "mae", "ssim", "lpips"):
+                assert np.isfinite(metrics[f"{model}_{split}_{name}"]), (model, split, name)
+    assert metrics["iterations"] == 8 and metrics["travatar_iterations"] == 6
+    table = (out / "table.md").read_text()
+    assert "novel light" in table and "TRAvatar*" in table
+    assert (out / "learning_curve.png").stat().st_size > 0
+    curve = json.loads((out / "curve.json").read_text())
+    assert [p[0] for p in curve["ours"]] == [0, 6] and [p[0] for p in curve["travatar"]] == [0, 6]
+    splits = json.loads((out / "splits.json").read_text())
+    manifest = json.loads((capture["capture"] / "manifest.json").read_text())
+    takes = {f["index"]: f["take"] for f in manifest["frames"]}
+    assert len(splits["held_out_bars"]) == 3
+    assert all(takes[i] == "speech" for i in splits["novel_perf"] + splits["novel_both"])
+    assert not set(splits["train"]) & set(splits["novel_light"] + splits["novel_perf"])
+    from avatar.io import load_trained
+
+    model, meta = load_trained(out / "models" / "travatar")
+    assert meta["kind"] == "travatar" and set(meta["held_out_bars"]).isdisjoint(meta["basis_bars"])
+
+
+def test_resume_after_kill_continues_the_same_run(capture, tmp_path, monkeypatch, caplog):
+    params = {**BASE, "iterations": 10, "baseline": False, "lpips": False, "curve_every": 0}
+    whole = run_stage_for_test(STAGE, tmp_path / "a", capture, params)
+
+    calls = {"n": 0}
+    real_step = trainer_mod.ModelTrainer.step
+
+    def dying_step(self):
+        calls["n"] += 1
+        if calls["n"] == 7:
+            raise KeyboardInterrupt("killed")
+        return real_step(self)
+
+    monkeypatch.setattr(trainer_mod.ModelTrainer, "step", dying_step)
+    with pytest.raises(KeyboardInterrupt):
+        run_stage_for_test(STAGE, tmp_path / "b", capture, params)
+    monkeypatch.setattr(trainer_mod.ModelTrainer, "step", real_step)
+    shutil.rmtree(tmp_path / "b" / "train")  # the runner never commits a failed stage's output
+    with caplog.at_level(logging.INFO):
+        resumed = run_stage_for_test(STAGE, tmp_path / "b", capture, params)
+    assert "resumed at iteration 4" in caplog.text
+    a = load_file(str(whole / "models" / "ours" / "model.safetensors"))
+    b = load_file(str(resumed / "models" / "ours" / "model.safetensors"))
+    for key in a:
+        assert torch.equal(a[key], b[key]), key
+
+
+def test_few_iterations_lower_the_loss(capture, tmp_path):
+    from avatar.config import AvatarConfig
+    from avatar.layout import build_layout
+    from avatar.model import RelightableMVP
+    from stages.train.data import load_train_data
+    from stages.train.stage import _tensors
+
+    torch.manual_seed(0)
+    data = load_train_data(capture, 24, logging.getLogger("test"))
+    config = AvatarConfig(**SMALL_AVATAR)
+    layout = build_layout(data.vertices.mean(0), data.triangles, config.prims_per_side)
+    tensors = _tensors(data, layout.guide_vertex_ids, torch.device("cpu"))
+    model = RelightableMVP(config, layout, data.num_bars)
+    renderer = trainer_mod.Renderer(model, "ours", None, sorted(set(data.bar.tolist())))
+    tr = trainer_mod.ModelTrainer(renderer, tensors, np.arange(len(data.bar)), iterations=40, batch_size=2,
+                                  rays_per_image=128, lr=3e-3, weights=trainer_mod.LossWeights(), seed=0,
+                                  ckpt_path=tmp_path / "c.pt", checkpoint_every=100, spike_factor=10.0,
+                                  log=logging.getLogger("test"))
+    batch = tr.sample_batch()
+    eps = torch.zeros(2, config.latent_dim)
+    before = tr.losses(*batch, eps)[1]["loss"]
+    for _ in range(40):
+        tr.step()
+    after = tr.losses(*batch, eps)[1]["loss"]
+    assert after < 0.8 * before
+
+
+def test_nan_loss_rolls_back_with_a_warning(capture, tmp_path, monkeypatch, caplog):
+    real_losses = trainer_mod.ModelTrainer.losses
+    calls = {"n": 0}
+
+    def poisoned(self, *args):
+        calls["n"] += 1
+        total, terms = real_losses(self, *args)
+        if calls["n"] == 6:
+            return total * float("nan"), {**terms, "loss": float("nan")}
+        return total, terms
+
+    monkeypatch.setattr(trainer_mod.ModelTrainer, "losses", poisoned)
+    params = {**BASE, "iterations": 8, "baseline": False, "lpips": False, "curve_every": 0}
+    with caplog.at_level(logging.WARNING):
+        out = run_stage_for_test(STAGE, tmp_path, capture, params)
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["ours_rollbacks"] == 1
+    assert "rolled back to the last good checkpoint" in caplog.text
+    state = load_file(str(out / "models" / "ours" / "model.safetensors"))
+    assert all(bool(torch.isfinite(v.float()).all()) for v in state.values())
