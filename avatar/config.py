@@ -13,19 +13,19 @@ class AvatarConfig(BaseModel):
     model_config = ConfigDict(frozen=True, extra="forbid")
 
     prims_per_side: int = Field(16, description="N: primitives per side of the UV grid (N^2 primitives); a power of two >= 8.")
-    voxels_per_side: int = Field(8, description="M: voxels per primitive side (M^3 RGBA voxels, M_z = M); a power of two.")
+    voxels_per_side: int = Field(4, description="M: voxels per primitive side (M^3 RGBA voxels, M_z = M); a power of two.")
     latent_dim: int = Field(64, description="Size of the mesh encoder's latent code z.")
     encoder_hidden: int = Field(128, description="Width of the mesh encoder's hidden layers.")
     base_channels: int = Field(64, description="Channels C of the C x 8 x 8 feature map the MLP decodes z into.")
     rgb_channels: tuple[int, ...] = Field(
-        (64, 32, 32, 24),
+        (48, 32, 12),
         description="Output channels of the appearance branch's transposed convs, one per layer; "
                     "log2(N*M/8) layers, the last = 3*M (rgb x M_z).")
     alpha_channels: tuple[int, ...] = Field(
-        (32, 16, 16, 8),
+        (32, 16, 4),
         description="Output channels of the opacity branch's transposed convs; the last = M.")
     geometry_channels: int = Field(32, description="Hidden channels of the primitive position/rotation/scale delta branch.")
-    steps_per_ray: int = Field(48, description="Raymarch samples per ray over its span through the union of primitive boxes.")
+    steps_per_ray: int = Field(32, description="Raymarch samples per ray over its span through the union of primitive boxes.")
     prim_overlap: float = Field(1.4, description="Primitive edge length as a multiple of the spacing of neighbouring guide points.")
     layout_theta_deg: float = Field(105.0, description="Half-width, in degrees around +z, of the cylindrical UV layout over the head.")
     light_basis: int = Field(0, description="TRAvatar*: number of training lights in the fixed one-hot light basis (0 = ours).")
@@ -69,5 +69,5 @@ class AvatarConfig(BaseModel):
 
     @staticmethod
     def tiny() -> "AvatarConfig":
-        """A CPU-sized model: N=16, M=8, narrow channels."""
+        """A CPU-sized model: N=16, M=4 (64 x 64 UV maps, enough for ~64 px wide images), narrow channels."""
         return AvatarConfig()

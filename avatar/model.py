@@ -80,6 +80,11 @@ class DecodedGeometry:
     guide_vertices: torch.Tensor  # [B, U, 3]
     feature: torch.Tensor  # [B, C, 8, 8]
 
+    def expand(self, k: int) -> "DecodedGeometry":
+        """A batch-1 geometry repeated ``k`` times (views, no copy), e.g. to decode k lights at once."""
+        return DecodedGeometry(*(t.expand(k, *t.shape[1:]) for t in (
+            self.centre, self.rotation, self.half_extent, self.density, self.guide_vertices, self.feature)))
+
     def primitives(self, rgb: torch.Tensor) -> Primitives:
         """Assemble raymarchable primitives with colours ``rgb`` [B, P, M, M, M, 3]."""
         return Primitives(self.centre, self.rotation, self.half_extent, rgb, self.density)

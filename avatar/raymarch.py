@@ -134,7 +134,10 @@ def _trilinear_gather(table: torch.Tensor, base: torch.Tensor, local: torch.Tens
     corners = _CORNERS.to(local.device)  # [8, 3]
     idx = i0[:, None, :] + corners  # [Q, 8, 3]
     rows = base[:, None] + (idx[..., 2] * m + idx[..., 1]) * m + idx[..., 0]  # [Q, 8]
-    w = torch.where(corners.bool(), f[:, None, :], 1.0 - f[:, None, :]).prod(-1)  # [Q, 8]
+    wx = torch.stack([1.0 - f[:, 0], f[:, 0]], -1)  # [Q, 2]
+    wy = torch.stack([1.0 - f[:, 1], f[:, 1]], -1)
+    wz = torch.stack([1.0 - f[:, 2], f[:, 2]], -1)
+    w = (wz[:, :, None, None] * wy[:, None, :, None] * wx[:, None, None, :]).reshape(-1, 8)  # [Q, 8] (z, y, x)
     values = table[rows.reshape(-1)].view(rows.shape[0], 8, -1)  # [Q, 8, C]
     return (values * w[..., None]).sum(1)  # [Q, C]
 

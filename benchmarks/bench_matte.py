@@ -21,7 +21,8 @@ import torch
 
 from stages.matte.modnet import SIZES, MODNet
 from stages.matte.synthetic import random_pair
-from stages.matte.training import TrainConfig, TrainingSet, predict, train_supervised
+from stages.matte.inference import predict
+from stages.matte.training import TrainConfig, TrainingSet, train_supervised
 
 RESULTS = Path("bench-results")
 

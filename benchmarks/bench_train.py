@@ -101,7 +101,7 @@ def main() -> dict:
                      "threads": torch.get_num_threads()}
     tiny = _measure(AvatarConfig.tiny(), 64, batch=4, rays=256, iterations=10, device=device)
     results["tiny"] = tiny
-    print(f"tiny  (N=16, M=8, batch 4 x 256 rays, {tiny['render_width_px']}x{tiny['render_height_px']} px): "
+    print(f"tiny  (N=16, M=4, batch 4 x 256 rays, {tiny['render_width_px']}x{tiny['render_height_px']} px): "
           f"{tiny['iterations_per_second']:.2f} it/s, peak {tiny['peak_memory_mb']:.0f} MB, "
           f"render {tiny['render_seconds_per_image'] * 1000:.0f} ms/image")
     if cuda:

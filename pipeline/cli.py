@@ -91,7 +91,9 @@ def build_parser(extra_commands: dict[str, str] | None = None) -> argparse.Argum
 
 
 def _setup_logging(debug: bool) -> None:
-    handler = logging.StreamHandler(sys.stderr)
+    from pipeline.progress import ConsoleHandler
+
+    handler = ConsoleHandler(sys.stderr)
     handler.setFormatter(logging.Formatter("%(asctime)s %(name)s: %(message)s", datefmt="%H:%M:%S"))
     root = logging.getLogger()
     for old in list(root.handlers):

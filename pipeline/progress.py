@@ -45,6 +45,22 @@ def stream_is_tty(stream: TextIO | None) -> bool:
         return False
 
 
+_ACTIVE: list["ProgressLine"] = []  # live lines on the terminal, so log records can step around them
+
+
+class ConsoleHandler(logging.StreamHandler):
+    """A console log handler that clears a live progress line before a record and redraws it
+    after, so log lines and the progress display never run into each other."""
+
+    def emit(self, record: logging.LogRecord) -> None:
+        live = [line for line in _ACTIVE if line.stream is self.stream]
+        for line in live:
+            line._erase()
+        super().emit(record)
+        for line in live:
+            line._draw()
+
+
 class ProgressLine:
     """One loop's progress (implements ``pipeline.stage.Progress``).
 
@@ -121,15 +137,23 @@ class ProgressLine:
         self.stream.write("\r" + text + " " * pad)
         self.stream.flush()
         self._width = len(text)
+        if self not in _ACTIVE:
+            _ACTIVE.append(self)
+
+    def _erase(self) -> None:
+        if self._width:
+            self.stream.write("\r" + " " * self._width + "\r")
+            self.stream.flush()
 
     def close(self) -> None:
         """Finish: end the live line, and log one summary line."""
         if self._closed:
             return
         self._closed = True
-        if self.tty and self._width:
-            self.stream.write("\r" + " " * self._width + "\r")
-            self.stream.flush()
+        if self in _ACTIVE:
+            _ACTIVE.remove(self)
+        if self.tty:
+            self._erase()
         self.log.info("%s", self.describe())
 
     def __enter__(self) -> "ProgressLine":

@@ -304,20 +304,32 @@ def weighted_radiance(envmap: EnvMap, mask: BackMask) -> np.ndarray:
 
 
 def select_uniform(envmap: EnvMap, count: int = 256, drop_fraction: float = 0.1,
-                   mask: BackMask = BackMask()) -> DirectionalLights:
+                   mask: BackMask = BackMask(), centroid: bool = False) -> DirectionalLights:
     """The paper's lights: ``count`` uniform directions, each integrating its Voronoi cell.
 
     Every pixel's radiance (times solid angle and the back attenuation) goes to its nearest
     Fibonacci direction, so the lights sum to the attenuated integral of the map. Directions
     with nothing left (the masked back cone) are removed, then the ``drop_fraction`` dimmest
     of the remaining ones (by luminance) are dropped, as in the paper.
+
+    ``centroid=False`` puts each light at its cell's Fibonacci direction (the paper's uniform
+    directions); ``True`` at the cell's luminance-weighted mean direction, which puts a sun
+    exactly where it is (used for ground truth and references).
     """
     energy = weighted_radiance(envmap, mask).reshape(-1, 3)  # [H*W, 3]
     cells = _voronoi_cells(envmap.height, envmap.width, count)
     irradiance = np.stack([np.bincount(cells, energy[:, c], minlength=count) for c in range(3)], -1)
     directions = fibonacci_sphere(count)
     lum = luminance(irradiance).astype(np.float64)
+    if centroid:
+        pixel_lum = luminance(energy).astype(np.float64)  # [H*W]
+        dirs = pixel_directions(envmap.height, envmap.width).reshape(-1, 3)
+        mean = np.stack([np.bincount(cells, pixel_lum * dirs[:, c], minlength=count) for c in range(3)], -1)
+        norm = np.linalg.norm(mean, axis=1, keepdims=True)
+        directions = np.where(norm > 1e-30, mean / np.maximum(norm, 1e-30), directions)
     alive = np.flatnonzero(lum > 0)
+    if alive.size == 0:
+        raise EnvMapError(f"environment map {envmap.source}: no light left (all black, or all behind the head)")
     n_drop = int(math.floor(drop_fraction * len(alive)))
     keep = np.sort(alive[np.argsort(lum[alive], kind="stable")[n_drop:]])
     return DirectionalLights(directions[keep], irradiance[keep], "uniform")
@@ -487,10 +499,11 @@ def select_adaptive(envmap: EnvMap, params: AdaptiveParams = AdaptiveParams(),
 
 
 def select_lights(envmap: EnvMap, method: str = "uniform", count: int = 256, drop_fraction: float = 0.1,
-                  adaptive: AdaptiveParams = AdaptiveParams(), mask: BackMask = BackMask()) -> DirectionalLights:
+                  adaptive: AdaptiveParams = AdaptiveParams(), mask: BackMask = BackMask(),
+                  centroid: bool = False) -> DirectionalLights:
     """Choose lights by ``method`` (``uniform``: the paper's; ``adaptive``: importance sampled)."""
     if method == "uniform":
-        return select_uniform(envmap, count, drop_fraction, mask)
+        return select_uniform(envmap, count, drop_fraction, mask, centroid)
     if method == "adaptive":
         return select_adaptive(envmap, adaptive, mask)
     raise ValueError(f"unknown light selection method {method!r}; use 'uniform' or 'adaptive'")

@@ -17,7 +17,7 @@ Radiometric conventions (linear, arbitrary but consistent units):
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Union
 
 import numpy as np

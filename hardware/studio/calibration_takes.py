@@ -132,11 +132,13 @@ def reference_world_from_board(cfg: CharucoBoardConfig, center_world: np.ndarray
 
 def sample_board_poses(cfg: CharucoBoardConfig, cameras: Sequence[Camera], params: CalibrationTakeParams,
                        rng: np.random.Generator) -> list[Rigid]:
-    """Board poses ``world_from_board``: pose 0 at the fixture, the rest facing random camera groups.
+    """Board poses ``world_from_board``: pose 0 at the fixture, each other one facing a random camera.
 
-    The facing direction is drawn within the cameras' azimuth/elevation range (seen from the
-    volume centre), then tilted by up to ``max_tilt_deg`` and spun in plane, so every camera
-    sees the board often and at varied angles (what makes focal length observable).
+    The facing direction points at a randomly chosen camera (seen from the volume centre,
+    jittered by about 20 degrees, so its neighbours see the board too), is tilted by up to
+    ``max_tilt_deg`` and spun in plane: every camera sees the board often and at varied
+    angles (what makes focal length observable) and neighbours share frames (which chains
+    the extrinsics).
     """
     centre = np.asarray(params.volume_center_m, float)
     half_ext = np.asarray(params.volume_half_extent_m, float)

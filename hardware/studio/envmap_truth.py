@@ -53,8 +53,12 @@ def _studio(subject: Subject, settings: RenderSettings | None) -> VirtualStudio:
 
 
 def envmap_truth_lights(envmap: EnvMap, directions: int = 1024) -> list[DirectionalLight]:
-    """The whole map (no back mask, nothing dropped) as ``directions`` directional lights."""
-    lights = select_uniform(envmap, directions, drop_fraction=0.0, mask=BackMask(enabled=False))
+    """The whole map (no back mask, nothing dropped) as ``directions`` directional lights.
+
+    Each light integrates its Voronoi cell of the map and sits at the cell's luminance-weighted
+    mean direction, so a sun is lit from exactly where it is.
+    """
+    lights = select_uniform(envmap, directions, drop_fraction=0.0, mask=BackMask(enabled=False), centroid=True)
     return [DirectionalLight(d, e) for d, e in zip(lights.directions_world, lights.irradiance_rgb)]
 
 

@@ -26,7 +26,7 @@ from typing import Sequence
 
 import numpy as np
 
-from scene.camera import Camera, Rigid
+from scene.camera import Camera
 from scene.lights import DirectionalLight, Light, LightBar, PointLight
 from scene.rig import RigConfig
 from hardware.studio.performance import FrameState

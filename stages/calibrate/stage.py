@@ -23,7 +23,7 @@ from pydantic import Field
 
 from pipeline.errors import InputError
 from pipeline.stage import Stage, StageContext, StageParams
-from scene.camera import Camera, Rigid, save_cameras
+from scene.camera import Camera, save_cameras
 from stages.calibrate.board import CharucoFinder, Detection, FrameVerdict, load_board_spec
 from stages.calibrate.bundle import bundle_adjust, export_colmap
 from stages.calibrate.initial import calibrate_intrinsics, chain_poses
@@ -174,9 +174,7 @@ def run(ctx: StageContext) -> None:
         report[cam.name] = {
             "frames_used": len(detections[cam.name]), "corners_used": int(len(res)), "reproj_rms_px": rms,
             "opencv_rms_px": intr[cam.name].rms_px,
-            "frames": [{"frame": v.frame, "used": v.used and v.frame in intr[cam.name].cam_from_board,
-                        "reason": v.reason if v.used is False or v.frame in intr[cam.name].cam_from_board
-                        else "outlier RMS", "corners": v.corners} for v in verdicts[cam.name]],
+            "frames": [_frame_entry(v, intr[cam.name].cam_from_board) for v in verdicts[cam.name]],
             "fx": cam.fx, "fy": cam.fy, "cx": cam.cx, "cy": cam.cy, "dist": list(cam.dist)}
         ctx.log.info("%s: %d frames, %d corners, RMS %.3f px", cam.name, len(detections[cam.name]), len(res), rms)
     (ctx.out / "report.json").write_text(json.dumps(
@@ -191,6 +189,13 @@ def run(ctx: StageContext) -> None:
     ctx.metrics["corners_used"] = int(len(res))
     ctx.metrics["frames_rejected_quality"] = sum(
         1 for v in verdicts.values() for x in v if not x.used and not x.reason.startswith("board not found"))
+
+
+def _frame_entry(verdict: FrameVerdict, kept: dict) -> dict:
+    """A frame's line in the report: used or why not."""
+    used = verdict.used and verdict.frame in kept
+    reason = verdict.reason if not verdict.used else ("ok" if used else "dropped: outlier RMS or too oblique")
+    return {"frame": verdict.frame, "used": used, "reason": reason, "corners": verdict.corners}
 
 
 def _reason_summary(verdicts: list[FrameVerdict]) -> str:

@@ -125,7 +125,7 @@ def _split_takes(n: int, takes: tuple[str, ...], cycle: int) -> list[int]:
 def _virtual_capture(ctx: StageContext, params: CaptureParams) -> dict:
     from hardware.led import Faults, run_emulated_session
     from hardware.studio import RenderSettings, make_performance, make_subject, scan_session
-    from stages.capture.virtual import RenderTask, frame_state_arrays, render_task
+    from stages.capture.virtual import RenderTask, render_task
 
     rig = params.rig
     seq_path = ctx.input("sequence") / "sequence.json"
@@ -203,7 +203,7 @@ def _virtual_capture(ctx: StageContext, params: CaptureParams) -> dict:
         **label_metrics, "lost_images": lost_images,
         "render_seconds": render_s,
         "rays_per_second": total_rays / max(sum(r["seconds"] for r in results), 1e-9),
-        "images_per_second": len(results) * len(cameras) / max(render_s, 1e-9),
+        "images_per_second": sum(r["images"] for r in results) / max(render_s, 1e-9),
         "image_width_px": cameras[0].width, "image_height_px": cameras[0].height,
         "controller_log_entries": len(log_json),
     }}

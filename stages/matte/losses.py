@@ -105,6 +105,6 @@ def soc_loss(semantic: torch.Tensor, detail: torch.Tensor, matte: torch.Tensor,
     detail_consistency = ((detail - matte.detach()).abs() * boundary).sum() / count
     anchor = (detail - frozen_detail).abs().mean() + (matte - frozen_matte).abs().mean()
     total = weights.semantic * semantic_consistency + weights.detail * detail_consistency + anchor_weight * anchor
-    parts = {"soc_semantic": float(semantic_consistency), "soc_detail": float(detail_consistency),
-             "soc_anchor": float(anchor)}
+    parts = {"soc_semantic": float(semantic_consistency.detach()), "soc_detail": float(detail_consistency.detach()),
+             "soc_anchor": float(anchor.detach())}
     return total, parts

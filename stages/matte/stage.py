@@ -7,7 +7,8 @@ Steps:
    the workspace root's shared cache (``stages.matte.model_cache``, keyed by a hash of the
    training params, the image scale and the code), so every subject reuses it.
 2. SOC adaptation (MODNet's sub-objectives consistency) on unlabelled frames of this capture.
-3. Batched inference over every image, written as 16-bit PNG mattes.
+3. Batched inference over every image (fused matte gated by the semantic branch,
+   ``stages.matte.inference``), written as 16-bit PNG mattes.
 
 OLAT frames: the unlit side of the head is black, so the image alone cannot say where the
 head ends there. Every image goes to the network together with the nearest full-on (F)
@@ -48,7 +49,8 @@ from stages.matte.inputs import (bright_level, camera_reference, is_full_on, nea
                                  olat_scale)
 from stages.matte.model_cache import cache_key, load_or_train, source_digest
 from stages.matte.studio_data import StudioDataConfig, collect, identity_jobs, render_identity
-from stages.matte.training import InputConfig, SocConfig, TrainConfig, predict, soc_adapt, train_supervised
+from stages.matte.inference import predict
+from stages.matte.training import InputConfig, SocConfig, TrainConfig, soc_adapt, train_supervised
 
 MATTE_DIR = Path(__file__).resolve().parent
 ROOT = MATTE_DIR.parents[1]
@@ -64,6 +66,8 @@ class MatteParams(StageParams):
     soc_frames: int = Field(32, ge=0, description="Unlabelled frames (spread over cameras and lights) used by SOC.")
     baseline: BaselineConfig = Field(BaselineConfig(), description="The classical matte (method 'baseline').")
     batch_size: int = Field(8, ge=1, description="Images per inference batch.")
+    gate_low: float = Field(0.3, ge=0, lt=1, description="Semantic gate: matte forced to 0 where the dilated semantic foreground is below this (0 = no gate).")
+    gate_high: float = Field(0.6, gt=0, le=1, description="Semantic gate: matte kept as is where the dilated semantic foreground is above this.")
     device: Literal["auto", "cpu", "cuda"] = Field("auto", description="Torch device; 'auto' uses CUDA when present.")
     contact_sheet_frames: int = Field(4, ge=1, description="Frames (rows) shown in the contact sheet.")
 
@@ -224,7 +228,8 @@ def run(ctx: StageContext) -> None:
             for first in range(0, len(indices), params.batch_size):
                 batch = indices[first:first + params.batch_size]
                 if model is not None:
-                    alphas = predict(model, np.stack([ci.network_input(i) for i in batch]), params.batch_size, device)
+                    alphas = predict(model, np.stack([ci.network_input(i) for i in batch]), params.batch_size, device,
+                                     params.gate_low, params.gate_high)
                 else:
                     alphas = [baseline_matte(ci.reader.read(i), params.baseline) for i in batch]
                 for index, alpha in zip(batch, alphas):

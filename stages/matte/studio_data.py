@@ -29,7 +29,7 @@ class StudioDataConfig(BaseModel):
     frame_pairs_per_identity: int = Field(10, ge=1, description="Frames (each with a neighbouring F guide frame) drawn per identity.")
     cameras_per_frame: int = Field(3, ge=1, description="Cameras rendered per drawn frame (they share the frame's geometry).")
     olat_fraction: float = Field(0.7, ge=0, le=1, description="Fraction of samples whose target is an OLAT frame (the rest are F).")
-    empty_fraction: float = Field(0.08, ge=0, le=1, description="Fraction of extra samples with no person (backdrop and sensor noise only).")
+    empty_fraction: float = Field(0.15, ge=0, le=1, description="Fraction of extra samples with no person (backdrop and sensor noise only).")
     render_seed: int = Field(7, description="Seed of frame, camera and bar choice and of the studio's sensor noise.")
 
 
@@ -82,7 +82,11 @@ def render_identity(job: IdentityJob) -> list[Sample]:
                 samples.append(Sample(target.rgb, guide, target.alpha, True))
             else:
                 samples.append(Sample(target.rgb, target.rgb, target.alpha, False))
+    # At least one per identity when asked for: an empty studio must be seen in training, or
+    # the instance-normalised half of IBNorm stretches pure sensor noise into false contrast.
     empty_count = int(round(config.empty_fraction * len(samples)))
+    if config.empty_fraction > 0:
+        empty_count = max(empty_count, 1)
     settings = studio.settings
     for _ in range(empty_count):
         shape = (cameras[0].height, cameras[0].width, 3)

@@ -1,4 +1,4 @@
-"""Supervised training, SOC adaptation and batched inference of the matting network."""
+"""Supervised training and SOC adaptation of the matting network (inference: ``stages.matte.inference``)."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ import torch
 from pydantic import BaseModel, ConfigDict, Field
 
 from stages.matte.augment import AugmentConfig, augment, random_crop
-from stages.matte.inputs import bright_level, network_input, olat_scale, pad_to_multiple
+from stages.matte.inputs import bright_level, network_input, olat_scale
 from stages.matte.losses import soc_loss, supervised_loss
 from stages.matte.modnet import SIZES, MODNet, NetSize
 
@@ -25,8 +25,8 @@ class InputConfig(BaseModel):
     model_config = ConfigDict(frozen=True, extra="forbid")
 
     exposure_floor: float = Field(
-        0.05, description="Smallest F exposure reference (linear luminance; a well exposed F frame's 99th "
-                          "percentile is ~0.3-1), so the sensor noise of an empty studio is not stretched to white.")
+        0.2, description="Smallest F exposure reference (linear luminance; a well exposed F frame's 99th "
+                         "percentile is ~0.3-1), so the sensor noise of an empty studio is not stretched to white.")
     olat_floor_ratio: float = Field(0.02, description="An OLAT frame's scale is at least this x its camera's F reference.")
 
 
@@ -190,17 +190,3 @@ def soc_adapt(model: MODNet, inputs: np.ndarray, config: SocConfig, device: str 
     record = {"iterations": config.iterations, "seconds": time.perf_counter() - start,
               "loss_first": losses[0], "loss_last": losses[-1]}
     return adapted.cpu().eval(), record
-
-
-@torch.no_grad()
-def predict(model: MODNet, inputs: np.ndarray | torch.Tensor, batch_size: int = 8, device: str = "cpu") -> np.ndarray:
-    """Alpha mattes [N, H, W] float32 of network inputs [N, 6, H, W] (any H, W; padded internally)."""
-    model = model.to(device).eval()
-    tensor = torch.as_tensor(inputs)
-    height, width = tensor.shape[-2:]
-    out = []
-    for start in range(0, len(tensor), batch_size):
-        batch = pad_to_multiple(tensor[start:start + batch_size].to(device), 32)
-        _, _, matte = model(batch)
-        out.append(matte[:, 0, :height, :width].float().cpu().numpy())
-    return np.concatenate(out) if out else np.zeros((0, height, width), np.float32)

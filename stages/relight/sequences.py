@@ -81,13 +81,14 @@ def warn_if_behind(position: np.ndarray, centre: np.ndarray, mask: BackMask, wha
 def envmap_sequence(envmap: EnvMap, frames: int, rotate_deg_per_frame: float, view: ViewSpec, *,
                     method: str = "uniform", directions: int = 256, drop_fraction: float = 0.1,
                     adaptive: AdaptiveParams = AdaptiveParams(), mask: BackMask = BackMask(),
-                    light_distance_m: float = 50.0, scale: float = 1.0) -> list[FrameSpec]:
+                    light_distance_m: float = 50.0, scale: float = 1.0, centroid: bool = False) -> list[FrameSpec]:
     """An environment map turning about +y by ``rotate_deg_per_frame`` each frame, front camera."""
     out = []
     camera = view.camera(view.front_eye())
     for i in range(frames):
         angle = math.radians(rotate_deg_per_frame * i)
-        lights = select_lights(envmap.rotated_about_y(angle), method, directions, drop_fraction, adaptive, mask)
+        lights = select_lights(envmap.rotated_about_y(angle), method, directions, drop_fraction, adaptive, mask,
+                               centroid)
         out.append(FrameSpec(camera, lights.positions_world(light_distance_m, np.asarray(view.target_head)),
                              scale * lights.irradiance_rgb, 0,
                              {"kind": "envmap", "envmap": envmap.source, "rotation_deg": rotate_deg_per_frame * i,

@@ -48,6 +48,7 @@ class RelightParams(StageParams):
     rotate_deg_per_frame: float = Field(30.0, description="Rotation of the map about +y per frame, degrees.")
     light_method: str = Field("uniform", description="'uniform' (the paper's ~256 directions) or 'adaptive' (importance sampled).")
     directions: int = Field(256, ge=1, description="Uniform directions before masking and dropping.")
+    light_centroid: bool = Field(False, description="Uniform: place each light at its cell's energy centroid (a sun exactly where it is) instead of the paper's cell centre.")
     drop_fraction: float = Field(0.1, ge=0.0, lt=1.0, description="Fraction of the dimmest directions dropped (paper: 0.1).")
     back_cone_deg: float = Field(45.0, ge=0.0, le=180.0, description="Half-angle of the masked cone around the back direction (-z).")
     adaptive_tolerance: float = Field(0.1, gt=0.0, description="Adaptive selection: stop when the estimated error is below.")
@@ -184,11 +185,15 @@ def run(ctx: StageContext) -> None:
                 raise InputError(f"relight.envmaps: {err}") from err
         for w in caught:
             ctx.log.warning("%s", w.message)
-        frames = seq.envmap_sequence(envmap, params.envmap_frames, params.rotate_deg_per_frame, view,
-                                     method=params.light_method, directions=params.directions,
-                                     drop_fraction=params.drop_fraction,
-                                     adaptive=AdaptiveParams(tolerance=params.adaptive_tolerance), mask=mask,
-                                     light_distance_m=params.light_distance_m, scale=params.envmap_scale)
+        try:
+            frames = seq.envmap_sequence(envmap, params.envmap_frames, params.rotate_deg_per_frame, view,
+                                         method=params.light_method, directions=params.directions,
+                                         drop_fraction=params.drop_fraction,
+                                         adaptive=AdaptiveParams(tolerance=params.adaptive_tolerance), mask=mask,
+                                         light_distance_m=params.light_distance_m, scale=params.envmap_scale,
+                                         centroid=params.light_centroid)
+        except EnvMapError as err:
+            raise InputError(f"relight.envmaps: {err}") from err
         envmap_seconds += render_sequence(ctx, renderer, f"envmap_{envmap.name}", frames, default, manifest)
         directions += [f.info["directions"] for f in frames]
         geometry = renderer.geometry(default_mesh)

@@ -28,11 +28,10 @@ def main(argv: Sequence[str]) -> int:
     code = pipeline_main(run_args)
     if code != 0:
         return code
-    from pipeline.project import Project, find_project_root
+    from pipeline.project import find_project_root
     from pipeline.workspace import Workspace, workspace_root
 
-    project = Project(find_project_root())
-    ws = Workspace(workspace_root(project.root, args.workspace_root), args.subject)
+    ws = Workspace(workspace_root(find_project_root(), args.workspace_root), args.subject)
     ref = ws.read_ref("report")
     print(f"report: {ws.object_path(ref.outputs['out']) / 'report.html'}")
     return 0

@@ -3,13 +3,14 @@
 Estimated once per capture:
 1. triangulate every landmark from all views of the first full-on frame (the actor starts
    neutral), align the triangulated points rigidly to the neutral scan (initialised from
-   known landmark correspondences, refined by ICP against the skin surface), and
-   snap each point to its closest point on the surface;
-2. refine: fit pose and weights of a few full-on frames with that embedding, move the
-   cameras into head space per frame, re-triangulate each landmark in head space with the
-   fitted expression offsets removed, snap again. A landmark that the detector places
-   consistently on the same skin point converges to it; the surface constraint keeps
-   the head frame tied to the scan.
+   known landmark correspondences, refined by ICP against the skin surface; all 468
+   FaceMesh points take part, which pins the head's pitch), and snap each point to its
+   closest point on the surface;
+2. refine: fit pose and weights of a few full-on frames with that embedding (the pose
+   refined by the head's outline where images give one), move the cameras into head space
+   per frame, re-triangulate each landmark in head space with the fitted expression
+   offsets removed, snap again. A landmark that the detector places consistently on the
+   same skin point converges to it.
 """
 
 from __future__ import annotations
@@ -108,21 +109,16 @@ def icp_to_surface(surface: SkinSurface, points_world: np.ndarray, head_from_wor
     return R, t, dist
 
 
-def initial_alignment(points_world: np.ndarray, head_reference: np.ndarray | None
-                      ) -> tuple[np.ndarray, np.ndarray]:
-    """A first head_from_world (R, t) for triangulated landmarks [N, 3].
+def initial_alignment(points_world: np.ndarray, head_reference: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A first head_from_world (R, t) for triangulated landmarks [N, 3] (nan = not triangulated).
 
-    With reference head-space positions for (some of) the points [N, 3] (nan where
-    unknown), a trimmed Kabsch; without, the world and head axes are taken as aligned
-    (both have +y up and +z out of the face) and only the centroids are matched (the
-    reference then is the mean of the surface the caller passes as ``head_reference``).
+    ``head_reference`` [N, 3] holds the head-space positions of the landmarks with a known
+    correspondence on the scan (nan elsewhere); a trimmed Kabsch over the known pairs. The
+    caller needs at least 6 known, triangulated pairs.
     """
-    if head_reference is not None:
-        known = np.all(np.isfinite(head_reference), axis=1) & np.all(np.isfinite(points_world), axis=1)
-        if known.sum() >= 6:
-            R, t, _ = robust_kabsch(points_world[known], head_reference[known])
-            return R, t
-    return np.eye(3), -np.nanmean(points_world, axis=0)
+    known = np.all(np.isfinite(head_reference), axis=1) & np.all(np.isfinite(points_world), axis=1)
+    R, t, _ = robust_kabsch(points_world[known], head_reference[known])
+    return R, t
 
 
 def embed_points(surface: SkinSurface, landmark_ids: np.ndarray, points_head: np.ndarray) -> LandmarkEmbedding:

@@ -22,7 +22,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
-from stages.track.geometry import PinholeArrays, kabsch, robust_kabsch, skew, so3_exp, so3_left_jacobian, triangulate
+from stages.track.geometry import PinholeArrays, robust_kabsch, skew, so3_exp, so3_left_jacobian, triangulate
 
 
 class FitParams(BaseModel):
@@ -338,11 +338,11 @@ class _SilhouetteTerm:
 
 def refine_pose_with_silhouette(model: LandmarkModel, cams: PinholeArrays, uv: np.ndarray, conf: np.ndarray,
                                 pose: FramePose, silhouettes: list, vertices_head: np.ndarray,
-                                faces: np.ndarray, candidate: np.ndarray, params: FitParams,
+                                faces: np.ndarray, edges: np.ndarray, candidate: np.ndarray, params: FitParams,
                                 weight: float, max_distance_px: float = 6.0, rounds: int = 3) -> tuple[FramePose, int]:
     """Refine the rigid pose (weights held) with landmarks plus the head's outline.
 
-    Each round pairs model contour vertices with image contour points at the current pose
+    Each round pairs model contour points with image contour points at the current pose
     (``stages.track.silhouette``) and solves the rigid pose for both terms (robust loss).
     Returns the pose and the number of contour pairs in the last round (0 = no outline used).
     """
@@ -351,13 +351,13 @@ def refine_pose_with_silhouette(model: LandmarkModel, cams: PinholeArrays, uv: n
     normals = vertex_normals(vertices_head, faces)
     pairs = 0
     for _ in range(rounds):
-        views, vids, targets, tnormals = model_contour_correspondences(
-            cams, silhouettes, vertices_head, normals, faces, candidate, pose.R, pose.t, max_distance_px)
+        views, points_head, targets, tnormals = model_contour_correspondences(
+            cams, silhouettes, vertices_head, normals, faces, edges, candidate, pose.R, pose.t, max_distance_px)
         pairs = len(views)
         if pairs < 10:
             return pose, 0
         landmarks = _Problem(model, cams, uv, conf, pose.R, None, params, pose.weights)
-        outline = _SilhouetteTerm(cams, pose.R, vertices_head[vids], views, targets, tnormals, weight)
+        outline = _SilhouetteTerm(cams, pose.R, points_head, views, targets, tnormals, weight)
 
         def residuals(x: np.ndarray) -> np.ndarray:
             return np.concatenate([landmarks.residuals(x), outline.residuals(x)])

@@ -185,7 +185,10 @@ def triangulate_general(R: np.ndarray, t: np.ndarray, f_px: np.ndarray, c_px: np
         worst_err = masked[worst, np.arange(N)]
         drop = (worst_err > reject_px) & (w.sum(0) > 2)
         w[worst[drop], np.flatnonzero(drop)] = 0.0
-        if not drop.any():
+        # Gross outliers (far beyond the threshold) go all at once while enough views remain.
+        gross = (w > 0) & (err > 4.0 * reject_px) & (w.sum(0) > 3)[None, :]
+        w[gross] = 0.0
+        if not drop.any() and not gross.any():
             break
     kept_err = np.where(w > 0, err, 0.0).max(axis=0)
     valid = (w.sum(0) >= 2) & np.all((z > 0) | (w == 0), axis=0) & (kept_err <= reject_px)

@@ -97,8 +97,12 @@ class FaceMeshDetector:
     """MediaPipe FaceDetection (for a score) + FaceMesh (468 landmarks), single images."""
 
     def __init__(self, params: DetectorParams):
+        import warnings
+
         import mediapipe as mp  # heavy import, only where detection actually runs
 
+        # mediapipe 0.10.14 calls a protobuf API that protobuf 4.25 marks deprecated.
+        warnings.filterwarnings("ignore", message="SymbolDatabase.GetPrototype", category=UserWarning)
         self.params = params
         self._mesh = mp.solutions.face_mesh.FaceMesh(
             static_image_mode=True, max_num_faces=1, refine_landmarks=params.refine_landmarks,
@@ -157,19 +161,65 @@ def check_spread(uv_px: np.ndarray, width: int, height: int, params: DetectorPar
     return "ok"
 
 
-def detect_files(job: tuple[list[Path], DetectorParams]) -> list[ViewLandmarks]:
-    """Detect landmarks in a list of EXR files with one detector (a picklable executor job)."""
+def _cache_key(path: Path, params: DetectorParams) -> str:
+    """Content hash of an image file and the detector settings (BLAKE3)."""
+    import blake3
+
+    digest = blake3.blake3(Path(path).read_bytes())
+    digest.update(params.model_dump_json().encode())
+    digest.update(b"facemesh-0.10.14+contour-v1")  # bump when detection or outline code changes
+    return digest.hexdigest()
+
+
+def _load_cached(cache_file: Path) -> ViewLandmarks | None:
+    try:
+        with np.load(cache_file, allow_pickle=False) as data:
+            return ViewLandmarks(np.asarray(data["uv_px"]), float(data["score"]), str(data["status"]),
+                                 np.asarray(data["contour_px"]))
+    except (OSError, ValueError, KeyError):  # a corrupt cache entry is a miss
+        return None
+
+
+def _store_cached(cache_file: Path, result: ViewLandmarks) -> None:
+    tmp = cache_file.with_name(cache_file.name + ".tmp.npz")
+    np.savez(tmp, uv_px=result.uv_px, score=result.score, status=result.status, contour_px=result.contour_px)
+    tmp.replace(cache_file)  # atomic: a killed run never leaves half an entry
+
+
+def detect_files(job: tuple[list[Path], DetectorParams, Path | None]) -> list[ViewLandmarks]:
+    """Detect landmarks in a list of EXR files with one detector (a picklable executor job).
+
+    ``job`` = (paths, params, cache folder or None). With a cache folder, results are kept
+    per image content and settings, so re-running the stage with other fit settings does
+    not run the detector again.
+    """
     from scene.image_io import read_exr
 
-    paths, params = job
-    results = []
-    with FaceMeshDetector(params) as detector:
+    paths, params, cache_dir = job
+    results: list[ViewLandmarks] = []
+    detector: FaceMeshDetector | None = None
+    try:
         for path in paths:
+            cache_file = None
+            if cache_dir is not None and Path(path).is_file():
+                cache_file = Path(cache_dir) / f"{_cache_key(path, params)}.npz"
+                cached = _load_cached(cache_file) if cache_file.is_file() else None
+                if cached is not None:
+                    results.append(cached)
+                    continue
             try:
                 image = read_exr(path)
             except ValueError as err:  # a corrupt frame loses one view, not the whole capture
                 results.append(ViewLandmarks(np.full((NUM_FACEMESH_LANDMARKS, 2), np.nan), 0.0,
                                              f"unreadable image ({err})"))
                 continue
-            results.append(detector.detect(image))
+            if detector is None:
+                detector = FaceMeshDetector(params)
+            result = detector.detect(image)
+            if cache_file is not None:
+                _store_cached(cache_file, result)
+            results.append(result)
+    finally:
+        if detector is not None:
+            detector.close()
     return results

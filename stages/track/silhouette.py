@@ -118,41 +118,52 @@ class ImageSilhouette:
         self.tree = cKDTree(self.points) if len(self.points) else None
 
 
+def outline_edges(faces: np.ndarray) -> np.ndarray:
+    """Unique undirected edges [E, 2] of a triangle list."""
+    edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    return np.unique(np.sort(edges, axis=1), axis=0)
+
+
 def model_contour_correspondences(cams: PinholeArrays, silhouettes: list[ImageSilhouette | None],
                                   vertices_head: np.ndarray, normals_head: np.ndarray, faces: np.ndarray,
-                                  candidate: np.ndarray, R: np.ndarray, t: np.ndarray,
-                                  max_distance_px: float, grazing_cos: float = 0.25
-                                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Pairs (view, model vertex) -> (image contour point, its normal) for the current pose.
+                                  edges: np.ndarray, candidate: np.ndarray, R: np.ndarray, t: np.ndarray,
+                                  max_distance_px: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Pairs (view, model contour point) -> (image contour point, its normal) for the current pose.
 
-    A model vertex pairs up when it faces the camera at a grazing angle, lies on the
-    boundary of the projected mesh (the ``candidate`` vertices; ``faces``, the triangles
-    that make the outline, set the splat's gap size), and an image contour point is within
-    ``max_distance_px``.
+    Model contour points are the smooth occluding contour: on every mesh edge (``edges``,
+    between ``candidate`` vertices) where the vertex normals turn from facing the camera
+    to facing away, the zero crossing of ``n . (camera - x)`` (vertices at grazing angles
+    would sit a fraction of a pixel inside the outline). Of those, the points on the
+    boundary of the projected mesh (its vertices splatted, gaps closed) pair with their
+    nearest image contour point when it is within ``max_distance_px``.
 
-    Returns view ids [P], vertex ids [P], target points [P, 2], target normals [P, 2].
+    Returns view ids [P], head-space points [P, 3], target points [P, 2], target normals [P, 2].
     """
     import cv2
 
     world = vertices_head @ R.T + t
     nrm = normals_head @ R.T
     centres = -np.einsum("cji,cj->ci", cams.R, cams.t)  # camera centres in world [C, 3]
-    views, verts, targets, tnormals = [], [], [], []
-    cand_ids = np.flatnonzero(candidate)
     uv_all, z_all = cams.project(world)
+    edges = edges[candidate[edges[:, 0]] & candidate[edges[:, 1]]]
+    views, points, targets, tnormals = [], [], [], []
     for c, sil in enumerate(silhouettes):
         if sil is None or sil.tree is None:
             continue
         W, H = int(cams.size_px[c, 0]), int(cams.size_px[c, 1])
         uv, z = uv_all[c], z_all[c]
-        to_cam = centres[c] - world[cand_ids]
-        cos = np.einsum("nd,nd->n", to_cam, nrm[cand_ids]) / np.linalg.norm(to_cam, axis=1)
-        grazing = cand_ids[(np.abs(cos) < grazing_cos) & (z[cand_ids] > 0)]
-        if not len(grazing):
+        facing = np.einsum("vd,vd->v", centres[c] - world, nrm)  # [V] > 0: facing the camera
+        sa, sb = facing[edges[:, 0]], facing[edges[:, 1]]
+        crossing = (sa * sb < 0) & (z[edges[:, 0]] > 0) & (z[edges[:, 1]] > 0)
+        if not crossing.any():
             continue
+        e = edges[crossing]
+        frac = (sa[crossing] / (sa[crossing] - sb[crossing]))[:, None]
+        p_head = vertices_head[e[:, 0]] * (1 - frac) + vertices_head[e[:, 1]] * frac  # [K, 3]
+        p_uv = uv[e[:, 0]] * (1 - frac) + uv[e[:, 1]] * frac  # [K, 2] (linear in the image: edges are short)
         # Boundary of the projected mesh: splat its vertices and close the gaps between them
         # (rasterising every triangle costs ~50 ms a view; the splat, a millisecond), then
-        # keep the grazing vertices near that mask's edge.
+        # keep the contour points near that mask's edge (interior folds, nose, ears' inner rims).
         edge_px = np.linalg.norm(uv[faces[::7, 0]] - uv[faces[::7, 1]], axis=1)
         gap = int(np.clip(np.ceil(2.0 * np.median(edge_px)), 1, 15))
         mask = np.zeros((H + 2, W + 2), np.uint8)  # a one-pixel frame keeps the edge off the border
@@ -162,19 +173,18 @@ def model_contour_correspondences(cams: PinholeArrays, silhouettes: list[ImageSi
         kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * gap + 1, 2 * gap + 1))
         mask = cv2.morphologyEx(mask, cv2.MORPH_CLOSE, kernel)
         dist_to_edge = cv2.distanceTransform(mask, cv2.DIST_L2, 3)
-        p = uv[grazing]
-        px = np.clip(np.round(p).astype(int) + 1, [0, 0], [W + 1, H + 1])
+        px = np.clip(np.round(p_uv).astype(int) + 1, [0, 0], [W + 1, H + 1])
         on_edge = dist_to_edge[px[:, 1], px[:, 0]] <= max(1.5, 0.5 * gap)
-        inside = (p[:, 0] >= 0) & (p[:, 0] <= W - 1) & (p[:, 1] >= 0) & (p[:, 1] <= H - 1)
-        ids = grazing[on_edge & inside]
-        if not len(ids):
+        inside = (p_uv[:, 0] >= 0) & (p_uv[:, 0] <= W - 1) & (p_uv[:, 1] >= 0) & (p_uv[:, 1] <= H - 1)
+        keep = on_edge & inside
+        if not keep.any():
             continue
-        d, nearest = sil.tree.query(uv[ids])
+        d, nearest = sil.tree.query(p_uv[keep])
         ok = d <= max_distance_px
         views.append(np.full(int(ok.sum()), c))
-        verts.append(ids[ok])
+        points.append(p_head[keep][ok])
         targets.append(sil.points[nearest[ok]])
         tnormals.append(sil.normals[nearest[ok]])
     if not views:
-        return np.zeros(0, int), np.zeros(0, int), np.zeros((0, 2)), np.zeros((0, 2))
-    return np.concatenate(views), np.concatenate(verts), np.concatenate(targets), np.concatenate(tnormals)
+        return np.zeros(0, int), np.zeros((0, 3)), np.zeros((0, 2)), np.zeros((0, 2))
+    return np.concatenate(views), np.concatenate(points), np.concatenate(targets), np.concatenate(tnormals)

@@ -17,8 +17,14 @@ Output::
     overlay.png      detected (green) and fitted (red) landmarks and the mesh wireframe
     metrics.json     landmark_reproj_px_mean, fit_frames_per_second, ...
 
-Every frame of the manifest gets a pose and weights (OLAT frames by interpolation, see
-``stages.track.interpolate``); the meshes are expression only, in head space.
+Method: MediaPipe FaceMesh landmarks on every full-on frame and camera (per-view rejection:
+no face, low score, implausible spread); the actor rig from the scan session (scan poses
+minus neutral); a barycentric landmark embedding on the neutral scan (``embedding``);
+per frame a robust multi-view fit of head pose and bounded weights (rigid first, warm
+started, light temporal term), its pose refined with the head's outline against the dark
+backdrop (``silhouette``). Every frame of the manifest then gets a pose and weights (OLAT
+frames by cubic spline and Slerp, ``interpolate``); the meshes are expression only, in
+head space. Warnings name the frame and camera of every rejected view and unfitted frame.
 """
 
 from __future__ import annotations
@@ -91,10 +97,12 @@ def _cameras(ctx: StageContext, manifest: dict) -> list[Camera]:
 def _detect(ctx: StageContext, params: TrackParams, capture: Path, cams: list[Camera],
             key_frames: list[dict]) -> tuple[np.ndarray, np.ndarray, list[list[str]], list[list[np.ndarray]]]:
     """Detections [F, C, 468, 2], scores [F, C] (0 = rejected), statuses [F][C], outlines [F][C]."""
+    cache = ctx.cache_dir / "landmarks"
+    cache.mkdir(parents=True, exist_ok=True)
     jobs = []
     for cam in cams:
         paths = [capture / "frames" / cam.name / f"{int(f['index']):06d}.exr" for f in key_frames]
-        jobs.append((paths, params.detector))
+        jobs.append((paths, params.detector, cache))
     ctx.log.info("detecting landmarks in %d full-on frames x %d cameras", len(key_frames), len(cams))
     per_camera = ctx.executor.map(detect_files, jobs, desc="cameras")
     F, C = len(key_frames), len(cams)

@@ -1,7 +1,10 @@
 """Tracking a sequence of full-on frames: landmark embedding, then pose + weights per frame.
 
-Input is detector output only (pixels per key frame, camera and landmark), so the whole
-algorithm runs without images (tests feed it projected synthetic landmarks).
+Per key frame: the landmark fit (``stages.track.fit``), then, where the images gave the
+head's outline, a refinement of the rigid pose with that outline and a re-fit of the
+weights at the refined pose (``stages.track.silhouette``). Input is detector output only
+(landmark pixels and outline points per key frame and camera), so the whole algorithm
+runs without images (tests feed it projected synthetic landmarks).
 """
 
 from __future__ import annotations
@@ -21,7 +24,7 @@ from stages.track.fit import (FitParams, FrameFit, FramePose, LandmarkModel, fit
                               refit_weights, residuals_px)
 from stages.track.geometry import PinholeArrays, ideal_pixels, triangulate, triangulate_general
 from stages.track.rig import ActorRig
-from stages.track.silhouette import ImageSilhouette
+from stages.track.silhouette import ImageSilhouette, outline_edges
 from stages.track.topology import outline_geometry
 
 
@@ -34,7 +37,7 @@ class TrackerParams(BaseModel):
     embed_refine_rounds: int = Field(2, ge=0, description="Rounds of re-triangulating the landmarks in head space with fitted poses and expressions.")
     triangulation_reject_px: float = Field(8.0, gt=0, description="Triangulation drops a view whose reprojection error exceeds this (pixels).")
     min_facing_cos: float = Field(0.15, ge=-1, le=1, description="A landmark counts in a view only when its surface normal faces the camera by at least this cosine (drops hallucinated far-side points).")
-    silhouette_weight: float = Field(1.0, ge=0, description="Weight of the head-outline term that refines each frame's pose after the landmark fit (0 = landmarks only; needs a dark backdrop).")
+    silhouette_weight: float = Field(20.0, ge=0, description="Weight of the head-outline term (per outline point, against 1 per landmark coordinate) that refines each frame's pose after the landmark fit; the outline is rigid and unbiased, so it dominates (0 = landmarks only; needs a dark backdrop).")
     outline_defines_head_frame: bool = Field(True, description="With outlines, keep the head frame of the outline-refined poses when re-embedding (no landmark-to-scan re-alignment).")
     silhouette_max_px: float = Field(6.0, gt=0, description="Model and image outline points farther apart than this (pixels) are not paired.")
     fit: FitParams = Field(default_factory=FitParams, description="Per-frame fit settings.")
@@ -121,6 +124,7 @@ class Tracker:
         self.head_reference = head_reference
         self.log = log or logging.getLogger(__name__)
         self.outline_faces, self.outline_candidates = outline_geometry(rig.faces, rig.num_vertices)
+        self.outline_edges = outline_edges(self.outline_faces)
         self.silhouettes: list[list[ImageSilhouette | None]] | None = None
 
     def set_contours(self, contours_px: list[list[np.ndarray]] | None) -> None:
@@ -181,15 +185,18 @@ class Tracker:
             ws.append(conf[f][:, cols] * fit.used_views[:, None])
         if not Rs:
             return emb
-        C = len(self.cameras)
         R = np.concatenate(Rs)
         t = np.concatenate(ts)
         f_px = np.tile(self.pinhole.f_px, (len(Rs), 1))
         c_px = np.tile(self.pinhole.c_px, (len(Rs), 1))
         points, valid, _ = triangulate_general(R, t, f_px, c_px, np.concatenate(uvs), np.concatenate(ws),
                                                reject_px=self.params.triangulation_reject_px,
-                                               rounds=max(6, C))
+                                               rounds=max(6, len(R)))
         old = model.mean_m
+        if valid.sum() < 10:
+            self.log.warning("embedding not refined: only %d landmarks could be re-triangulated "
+                             "consistently over %d frames", int(valid.sum()), len(Rs))
+            return emb
         # Re-anchor the head frame: the re-triangulated points, aligned to the surface, define it.
         align = valid & self._is_align(emb.landmark_ids)
         if self.silhouettes is None or not self.params.outline_defines_head_frame:
@@ -260,7 +267,7 @@ class Tracker:
         vertices = self.rig.mesh(fit.pose.weights)
         pose, pairs = refine_pose_with_silhouette(
             model, self.pinhole, obs, conf, fit.pose, silhouettes, vertices, self.outline_faces,
-            self.outline_candidates, self.params.fit, self.params.silhouette_weight, self.params.silhouette_max_px)
+            self.outline_edges, self.outline_candidates, self.params.fit, self.params.silhouette_weight, self.params.silhouette_max_px)
         if not pairs:
             return fit
         pose = refit_weights(model, self.pinhole, obs, conf, pose, self.params.fit)

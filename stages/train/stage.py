@@ -20,7 +20,6 @@ import hashlib
 import json
 import resource
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -46,13 +45,13 @@ class TrainParams(StageParams):
 
     avatar: AvatarConfig = Field(default_factory=AvatarConfig.tiny,
                                  description="Model sizes (N, M, latent, channels, raymarch steps); see avatar.config.")
-    image_width_px: int = Field(64, ge=8, description="Training/evaluation image width in pixels (0 = the capture's).")
+    image_width_px: int = Field(64, ge=0, description="Training/evaluation image width in pixels (0 = the capture's).")
     max_frames: int = Field(0, ge=0, description="Use at most this many OLAT frames, evenly spread (0 = all).")
     iterations: int = Field(1500, ge=1, description="Training iterations of our model.")
     baseline: bool = Field(True, description="Also train the TRAvatar* baseline on the same data.")
     baseline_iterations: int = Field(0, ge=0, description="Training iterations of TRAvatar* (0 = same as ours).")
     batch_size: int = Field(4, ge=1, description="Images per iteration (the paper: 12).")
-    rays_per_image: int = Field(512, ge=1, description="Rays sampled per image per iteration (foreground-weighted).")
+    rays_per_image: int = Field(256, ge=1, description="Rays sampled per image per iteration (foreground-weighted).")
     lr: float = Field(1e-3, gt=0, description="Adam learning rate (the paper: 1e-4).")
     pho_weight: float = Field(1.0, ge=0, description="Weight of the photometric (MSE) loss.")
     geo_weight: float = Field(0.1, ge=0, description="Weight of the guide-mesh loss (MSE, cm^2).")

@@ -83,3 +83,24 @@ def test_run_stage_for_test(tmp_path: Path) -> None:
     out = run_stage_for_test(Stage(name="count", inputs=(), params=_P, run=_run), tmp_path, params={"n": 4})
     assert (out / "n.txt").read_text() == "4"
     assert (out / "metrics.json").read_text().strip().startswith("{")
+
+
+def test_console_handler_steps_around_a_live_line() -> None:
+    from pipeline.progress import ConsoleHandler
+
+    stream = io.StringIO()
+    log = logging.getLogger("test.console")
+    log.propagate = False
+    handler = ConsoleHandler(stream)
+    log.addHandler(handler)
+    try:
+        bar = ProgressLine(10, "it", tty=True, stream=stream, clock=_Clock(), log=logging.getLogger("quiet"))
+        bar.advance()
+        log.warning("hello")
+        bar.close()
+    finally:
+        log.removeHandler(handler)
+    text = stream.getvalue()
+    # the live line is erased before the record, and drawn again after it
+    before, after = text.split("hello\n")
+    assert before.endswith("\r") and "1/10 it" in after

@@ -238,3 +238,22 @@ def test_dwab_ringing_is_clamped_without_warning():
         warnings.simplefilter("error", EnvMapWarning)
         env = read_envmap(BLENDER / "sunrise.exr")  # has small negatives from DWAB compression
     assert env.radiance.min() >= 0.0
+
+
+def test_centroid_directions_put_a_sun_where_it_is():
+    sun = np.array([0.37, 0.52, 0.77]) / np.linalg.norm([0.37, 0.52, 0.77])
+    env = synthetic_sky(128, sun, sun_fraction=0.9, sun_radius_deg=1.0)
+    for centroid, worst_deg in ((False, 10.0), (True, 0.5)):
+        lights = select_uniform(env, 64, 0.0, BackMask(enabled=False), centroid=centroid)
+        brightest = lights.directions_world[np.argmax(lights.irradiance_rgb.sum(1))]
+        err = math.degrees(math.acos(min(1.0, float(brightest @ sun))))
+        assert err < worst_deg
+    assert np.allclose(np.linalg.norm(lights.directions_world, axis=1), 1.0)
+
+
+def test_black_map_is_a_clear_error():
+    black = EnvMap(np.zeros((16, 32, 3), np.float32), "black.exr")
+    with pytest.raises(EnvMapError, match="black.exr.*no light"):
+        select_uniform(black, 32)
+    with pytest.raises(EnvMapError, match="black.exr.*no light"):
+        select_adaptive(black)

@@ -1,6 +1,5 @@
 """The virtual studio's renderer: determinism, lighting geometry, coverage alpha, shadows."""
 
-from dataclasses import replace
 
 import numpy as np
 import pytest

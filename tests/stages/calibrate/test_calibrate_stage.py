@@ -41,6 +41,7 @@ def test_accuracy_against_ground_truth(calibrated):
     assert m["principal_err_px_max"] <= 4.0
     assert m["center_err_mm_max"] <= 3.0
     assert m["rotation_err_deg_max"] <= 0.3
+    assert m["volume_reproj_err_px_max"] <= 0.5  # the capture volume projects where it should
     assert m["cameras"] == 5 and m["cameras_dropped"] == 0
 
 
@@ -124,6 +125,26 @@ def test_umeyama_recovers_a_similarity():
     dst = 1.3 * src @ R.T + np.array([0.1, 0.2, -0.3])
     s, R_est, t = umeyama(src, dst)
     assert abs(s - 1.3) < 1e-9 and np.allclose(R_est, R) and np.allclose(t, [0.1, 0.2, -0.3])
+
+
+def test_volume_reprojection_sees_through_the_pp_rotation_trade(calib_capture):
+    """A principal point shift paired with the matching rotation moves projections little."""
+    from dataclasses import replace
+
+    from scene.camera import Rigid
+    from stages.calibrate.eval_stage import volume_reprojection_px
+
+    true = {c.name: c for c in load_cameras(calib_capture[1] / "cameras.json")}
+    traded, shifted = {}, {}
+    for n, c in true.items():
+        angle = np.arctan2(2.0, c.fx)  # 2 px of principal point = this rotation about the camera's y axis
+        Ry = np.array([[np.cos(angle), 0, np.sin(angle)], [0, 1, 0], [-np.sin(angle), 0, np.cos(angle)]])
+        turned = Rigid(Ry @ c.cam_from_world.R, Ry @ c.cam_from_world.t)
+        traded[n] = replace(c, cx=c.cx - 2.0, cam_from_world=turned)
+        shifted[n] = replace(c, cx=c.cx - 2.0)
+    assert camera_errors(traded, true)["rotation_err_deg_max"] > 0.1
+    assert volume_reprojection_px(traded, true)["volume_reproj_err_px_max"] < 0.3
+    assert volume_reprojection_px(shifted, true)["volume_reproj_err_px_max"] > 1.9
 
 
 def test_camera_errors_zero_for_identical_and_positive_for_shifted(calib_capture):

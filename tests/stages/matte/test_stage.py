@@ -10,6 +10,7 @@ import json
 
 import numpy as np
 import pytest
+import torch
 
 from pipeline.testing import run_stage_for_test
 from scene.image_io import read_png16
@@ -27,7 +28,16 @@ SMALL_TRAINING = {
 
 @pytest.fixture(scope="session")
 def matted(tmp_path_factory):
-    work = tmp_path_factory.mktemp("matte")
+    # One thread: on a shared 2-core machine two torch threads per process thrash.
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        yield _run_matte(tmp_path_factory.mktemp("matte"))
+    finally:
+        torch.set_num_threads(threads)
+
+
+def _run_matte(work):
     capture, truth = work / "capture", work / "capture.truth"
     render_mini_capture(capture, truth, identity_seed=1, image_scale=0.125, frame_count=7)
     out = run_stage_for_test(STAGE, work, inputs={"capture": capture}, params=SMALL_TRAINING)
