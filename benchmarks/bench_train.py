@@ -97,6 +97,10 @@ def _measure(config: AvatarConfig, width_px: int, batch: int, rays: int, iterati
 def main() -> dict:
     cuda = torch.cuda.is_available()
     device = torch.device("cuda" if cuda else "cpu")
+    if not cuda:
+        # One intra-op thread: on a shared 2-core machine, OpenMP threads spinning at barriers
+        # make multi-threaded small-tensor work many times slower, not faster.
+        torch.set_num_threads(1)
     results: dict = {"device": torch.cuda.get_device_name() if cuda else "cpu",
                      "threads": torch.get_num_threads()}
     tiny = _measure(AvatarConfig.tiny(), 64, batch=4, rays=256, iterations=10, device=device)

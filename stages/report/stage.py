@@ -44,6 +44,16 @@ class ReportParams(StageParams):
     title: str = Field("Relightable neural head: capture-to-relight report",
                        description="Heading of the page.")
     max_images_per_stage: int = Field(8, ge=0, description="At most this many PNGs shown per stage output.")
+    bench_results: str | None = Field(
+        "bench-results", description="Folder of `make bench` results (JSON figures, PNG charts and sweeps) "
+        "to include, relative to the working directory; its content counts toward staleness. None: leave out.")
+
+
+def bench_results_folder(params: ReportParams) -> list[Path]:
+    """The benchmark folder as an external input, when it exists."""
+    if params.bench_results and Path(params.bench_results).is_dir():
+        return [Path(params.bench_results).resolve()]
+    return []
 
 
 def _read_metrics(folder: Path) -> dict[str, float]:
@@ -145,6 +155,30 @@ def _tradeoff_charts(ctx: StageContext, charts: Path) -> list[tuple[Path, str]]:
     return made
 
 
+def _bench_section(folder: Path) -> Section:
+    """The figures and charts `make bench` wrote (speed/accuracy sweeps, stability sweeps)."""
+    section = Section("Benchmarks and sweeps (make bench)", "bench")
+    section.paragraph(f"From {folder}; each benchmark's scalar figures, then its charts. Benchmarks run on "
+                      "whatever machine ran `make bench`; see each file's notes.", "note")
+    for path in sorted(folder.glob("*.json")):
+        try:
+            figures = json.loads(path.read_text(encoding="utf-8"))
+        except ValueError:
+            section.paragraph(f"{path.name}: not valid JSON, skipped", "note")
+            continue
+        if not isinstance(figures, dict):
+            continue
+        scalars = {k: v for k, v in figures.items() if isinstance(v, (int, float)) and not isinstance(v, bool)}
+        if scalars:
+            table = Table([path.stem, "value"], table_id=f"bench-{path.stem}")
+            for key, value in scalars.items():
+                table.add([key, _fmt(value)])
+            section.table(table)
+    for png in sorted(folder.glob("*.png")):
+        section.figure(png, f"bench: {png.stem.replace('_', ' ')}")
+    return section
+
+
 def run(ctx: StageContext) -> None:
     """Collect every stage's metrics and pictures into report.html."""
     params: ReportParams = ctx.params
@@ -174,6 +208,10 @@ def run(ctx: StageContext) -> None:
         for chart, title in tradeoffs:
             speed.figure(chart, title)
         sections.append(speed)
+
+    bench = bench_results_folder(params)
+    if bench:
+        sections.append(_bench_section(bench[0]))
 
     seconds = {}
     for stage, evaluator in STAGE_EVALS:
@@ -214,5 +252,6 @@ STAGE = Stage(
     inputs=tuple(name for pair in STAGE_EVALS for name in pair if name),
     params=ReportParams,
     run=run,
+    external_inputs=bench_results_folder,
     doc="A self-contained HTML report of every stage's figures against the targets.",
 )

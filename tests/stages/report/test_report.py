@@ -85,3 +85,17 @@ def test_report_renders_in_headless_chromium_without_broken_images(report_dir: P
     assert int(attrs["images"]) >= 4  # contact sheet, learning curve, targets, timings, trade-off
     assert int(attrs["broken"]) == 0
     assert int(attrs["tables"]) >= 5
+
+
+def test_bench_results_are_included(tmp_path: Path) -> None:
+    from stages.report.stage import ReportParams, _bench_section, bench_results_folder
+
+    bench = tmp_path / "bench"
+    bench.mkdir()
+    (bench / "studio.json").write_text(json.dumps({"tiny_frames_per_second": 0.5, "note": "text is skipped"}))
+    write_png_srgb(bench / "sweep.png", np.full((8, 8, 3), 0.5, np.float32))
+    assert bench_results_folder(ReportParams(bench_results=str(bench))) == [bench.resolve()]
+    assert bench_results_folder(ReportParams(bench_results=str(tmp_path / "absent"))) == []
+    page = "".join(_bench_section(bench).parts)
+    assert "tiny_frames_per_second" in page and "text is skipped" not in page
+    assert page.count("<img") == 1
