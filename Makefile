@@ -15,7 +15,7 @@ $(STAMP): pyproject.toml Makefile
 	$(PY) -m pip install -q --upgrade pip wheel
 	# torch first, pinned, so no other build (e.g. a multi-GB CUDA one) is pulled in later.
 	$(PY) -m pip install -q "$(TORCH)"
-	$(PY) -m pip install -q -e ".[test]"
+	$(PY) -m pip install -q -e ".[test,ray]"
 	# mediapipe 0.10.14 ships its TFLite models; its declared extras are not needed.
 	$(PY) -m pip install -q --no-deps mediapipe==0.10.14
 	$(PY) -m pip install -q absl-py==2.5.1 attrs==26.1.0 flatbuffers==25.12.19 "protobuf==4.25.9"

@@ -35,7 +35,9 @@ def subject_from_truth(truth_dir: Path) -> Subject:
     path = Path(truth_dir) / "studio.json"
     try:
         spec = json.loads(path.read_text())
-        return make_subject(str(spec["subject"]), int(spec["identity_seed"]))
+        # The albedo atlas resolution, when the capture recorded it (else the studio default).
+        extra = {"texture_size": int(spec["texture_size"])} if "texture_size" in spec else {}
+        return make_subject(str(spec["subject"]), int(spec["identity_seed"]), **extra)
     except (OSError, ValueError, KeyError) as err:
         raise ValueError(f"{path}: cannot rebuild the subject ({err}); re-run the capture stage") from err
 

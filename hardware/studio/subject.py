@@ -203,6 +203,6 @@ def _hair_cap_mask(rig: FaceRig, neutral: np.ndarray, size: int) -> np.ndarray:
             cv2.fillPoly(canvas, pts[None], 1.0, lineType=cv2.LINE_AA, shift=4)
     # Grow the mask a little: triangles along UV-island borders are only partly covered by
     # anti-aliased filling, which would leave a skin-coloured seam across the scalp.
-    grow = max(1, size // 128)
+    grow = max(1, size // 64)
     canvas = cv2.dilate(canvas, np.ones((2 * grow + 1, 2 * grow + 1), np.uint8))
     return cv2.GaussianBlur(canvas, (0, 0), size / 150)

@@ -186,7 +186,7 @@ def soc_adapt(model: MODNet, inputs: np.ndarray, config: SocConfig, device: str 
         optimiser.zero_grad(set_to_none=True)
         loss.backward()
         optimiser.step()
-        losses.append(float(loss))
+        losses.append(float(loss.detach()))
     record = {"iterations": config.iterations, "seconds": time.perf_counter() - start,
               "loss_first": losses[0], "loss_last": losses[-1]}
     return adapted.cpu().eval(), record

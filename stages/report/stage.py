@@ -30,7 +30,7 @@ from stages.report.targets import TARGETS
 
 # Product stages in pipeline order, each with its evaluation stage (if any).
 STAGE_EVALS: tuple[tuple[str, str | None], ...] = (
-    ("sequence", None), ("capture", None), ("calibrate", "calibrate_eval"), ("lightcal", "lightcal_eval"),
+    ("sequence", None), ("capture", "capture_eval"), ("calibrate", "calibrate_eval"), ("lightcal", "lightcal_eval"),
     ("track", "track_eval"), ("stabilize", "stabilize_eval"), ("matte", "matte_eval"),
     ("train", None), ("relight", "relight_eval"),
 )

@@ -53,6 +53,8 @@ class TrainParams(StageParams):
     batch_size: int = Field(4, ge=1, description="Images per iteration (the paper: 12).")
     rays_per_image: int = Field(256, ge=1, description="Rays sampled per image per iteration (foreground-weighted).")
     lr: float = Field(1e-3, gt=0, description="Adam learning rate (the paper: 1e-4).")
+    lr_decay_to: float = Field(0.1, gt=0, le=1, description="Final learning rate as a fraction of lr "
+                               "(exponential decay over the run; 1 = constant, as the paper).")
     pho_weight: float = Field(1.0, ge=0, description="Weight of the photometric (MSE) loss.")
     geo_weight: float = Field(0.1, ge=0, description="Weight of the guide-mesh loss (MSE, cm^2).")
     vol_weight: float = Field(0.01, ge=0, description="Weight of MVP's primitive volume prior.")
@@ -185,7 +187,8 @@ def run(ctx: StageContext) -> None:
                                rays_per_image=params.rays_per_image, lr=params.lr, weights=weights,
                                seed=params.seed, ckpt_path=ckpt_dir / f"{kind}.pt",
                                checkpoint_every=params.checkpoint_every, spike_factor=params.spike_factor,
-                               log=ctx.log, curve_every=params.curve_every, curve_fn=curve_fn, writer=writer)
+                               log=ctx.log, curve_every=params.curve_every, curve_fn=curve_fn, writer=writer,
+                               lr_decay_to=params.lr_decay_to)
         ctx.log.info("%s: %d parameters, %d primitives of %d^3 voxels", kind, count_parameters(model),
                      config.num_prims, config.voxels_per_side)
         with ctx.progress(iterations, f"{kind} it") as progress:

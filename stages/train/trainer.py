@@ -125,13 +125,15 @@ class ModelTrainer:
     def __init__(self, renderer: Renderer, tensors: TrainTensors, train_frames: np.ndarray, *, iterations: int,
                  batch_size: int, rays_per_image: int, lr: float, weights: LossWeights, seed: int,
                  ckpt_path: Path, checkpoint_every: int, spike_factor: float, log: logging.Logger,
-                 curve_every: int = 0, curve_fn: Callable[[], float] | None = None, writer=None) -> None:
+                 curve_every: int = 0, curve_fn: Callable[[], float] | None = None, writer=None,
+                 lr_decay_to: float = 1.0) -> None:
         self.r, self.t = renderer, tensors
         self.model = renderer.model
         self.train_frames = np.asarray(train_frames)
         self.iterations, self.batch_size, self.rays = iterations, batch_size, rays_per_image
         self.weights, self.ckpt_path, self.checkpoint_every = weights, ckpt_path, checkpoint_every
         self.spike_factor, self.log = spike_factor, log
+        self.lr_decay_to = lr_decay_to
         self.curve_every, self.curve_fn, self.writer = curve_every, curve_fn, writer
         self.optim = torch.optim.Adam(self.model.parameters(), lr=lr)
         self.gen = torch.Generator(device="cpu")
@@ -255,6 +257,9 @@ class ModelTrainer:
         while self.state.iteration < self.iterations:
             tick = time.perf_counter()
             self.model.train()
+            # Exponential decay from lr to lr * lr_decay_to over the run (a function of the
+            # iteration only, so a resumed run follows the same schedule).
+            self._set_lr(self.state.lr * self.lr_decay_to ** (self.state.iteration / self.iterations))
             terms = self.step()
             self.state.iteration += 1
             self.state.train_seconds += time.perf_counter() - tick

@@ -58,8 +58,8 @@ def test_alpha_is_pixel_coverage(setup):
     frame = _still_frame(rig)
     cam = cams[3]
     res = studio.render(frame, cam, "F")
-    # Reference coverage: 16 x 16 regular samples per pixel.
-    n = 16
+    # Reference coverage: 10 x 10 regular samples per pixel.
+    n = 10
     offs = (np.arange(n) + 0.5) / n - 0.5
     jj, ii = np.meshgrid(np.arange(cam.width), np.arange(cam.height))
     ox, oy = np.meshgrid(offs, offs)

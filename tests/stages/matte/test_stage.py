@@ -66,10 +66,12 @@ def test_matte_quality_regression(matted):
     for key in ("mae_full", "mae_olat", "grad_err_olat", "baseline_mae_full", "baseline_mae_olat",
                 "baseline_grad_err_olat"):
         assert key in ev
-    assert ev["mae_full"] < 0.03
-    assert ev["mae_olat"] < 0.03
+    # This small run reaches about 0.010 (F) and 0.012 (OLAT); the tiny preset about half that.
+    assert ev["mae_full"] < 0.02
+    assert ev["mae_olat"] < 0.02
     # The F-frame guide is what lets the network cover the unlit side of OLAT frames.
-    assert ev["mae_olat"] < ev["baseline_mae_olat"]
+    assert ev["mae_olat"] < ev["baseline_mae_olat"] / 3
+    assert ev["grad_err_olat"] < ev["baseline_grad_err_olat"]
 
 
 @pytest.mark.slow

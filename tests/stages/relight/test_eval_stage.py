@@ -29,7 +29,7 @@ def test_eval_scores_envmap_and_point_frames(inputs, tmp_path):  # noqa: F811
                                                             "orbit_frames": 2})
     truth = tmp_path / "capture.truth"
     truth.mkdir()
-    (truth / "studio.json").write_text(json.dumps({"subject": "alice", "identity_seed": 1}))
+    (truth / "studio.json").write_text(json.dumps({"subject": "alice", "identity_seed": 1, "texture_size": 128}))
     np.savez(truth / "frames.npz", weights=np.zeros((1, 57), np.float32))
     out = run_stage_for_test(EVAL_STAGE, tmp_path, {"relight": relight, "capture.truth": truth},
                              {"truth_directions": 64})
