@@ -4,15 +4,16 @@ Prints and writes ``bench-results/matte.json``:
 - ``inference_images_per_second_<H>x<W>``: batched tiny-network inference on CPU (network
   inputs prepared in advance), at the tiny preset's image size 240x320 and at 96x128.
 - ``train_seconds_per_iteration`` and ``train_seconds_<N>_iterations``: supervised
-  training steps (batch 8, 96 px crops) on procedural figures (``stages.matte.synthetic``),
+  training steps (the tiny preset's batch 6, 96 px crops) on procedural figures (``stages.matte.synthetic``),
   so the figure does not depend on the studio's render speed;
   ``studio_render_seconds_per_sample`` times one studio training sample (target + guide).
-Timings on a shared CPU are noisy.
+Timings on a shared CPU are noisy. ``MATTE_BENCH_THREADS`` sets torch's thread count (default 1).
 """
 
 from __future__ import annotations
 
 import json
+import os
 import time
 from pathlib import Path
 
@@ -45,7 +46,7 @@ def training_time(iterations: int = 40) -> tuple[float, float]:
         pair = random_pair(rng, 96, 96)
         train_set.add(pair.image, pair.guide, pair.alpha, pair.is_olat)
     train_set.finish()
-    _, record = train_supervised(train_set, TrainConfig(iterations=iterations, batch_size=8, crop_px=96))
+    _, record = train_supervised(train_set, TrainConfig(iterations=iterations, batch_size=6, crop_px=96))
     return record["seconds"] / iterations, record["seconds"]
 
 
@@ -61,14 +62,17 @@ def studio_sample_seconds(image_scale: float = 0.3125) -> float:
 
 
 def main() -> None:
-    torch.set_num_threads(2)
-    results: dict[str, float] = {"threads": 2}
+    # One thread: on the shared 2-core development machine two torch threads per process
+    # thrash (5x slower); on dedicated cores MATTE_BENCH_THREADS=2 may be faster.
+    threads = int(os.environ.get("MATTE_BENCH_THREADS", "1"))
+    torch.set_num_threads(threads)
+    results: dict[str, float] = {"threads": threads}
     for height, width in ((320, 240), (128, 96)):
         results[f"inference_images_per_second_{height}x{width}"] = inference_rate(height, width)
     per_iteration, total = training_time()
     results["train_seconds_per_iteration"] = per_iteration
     results["train_seconds_40_iterations"] = total
-    results["train_seconds_1500_iterations_estimate"] = per_iteration * 1500
+    results["train_seconds_600_iterations_estimate"] = per_iteration * 600  # the tiny preset
     results["studio_render_seconds_per_sample"] = studio_sample_seconds()
     for key, value in results.items():
         print(f"{key}: {value:.4g}")

@@ -36,7 +36,7 @@ class LightcalParams(StageParams):
 
     min_snr: float = Field(12.0, gt=0, description="A highlight must rise this many noise sigmas above the background.")
     max_incidence_deg: float = Field(
-        70.0, gt=0, lt=90, description="Highlights nearer the ball's rim than this incidence angle are ignored.")
+        60.0, gt=0, lt=90, description="Highlights nearer the ball's rim than this incidence angle are ignored.")
     min_rays: int = Field(3, ge=2, description="Fewest highlights (ball x camera) needed to place a bar.")
     min_elongation: float = Field(1.5, ge=1, description="Long/short axis ratio above which a highlight gives the bar's axis.")
     per_camera_centres: bool = Field(

@@ -26,7 +26,9 @@ Output::
     mattes/<cam>/<index:06d>.png   16-bit alpha, one per received image
     contact_sheet.png              mattes of a few frames from every camera (F and OLAT)
     model.json                     which cached model was used, training and SOC records
-    metrics.json                   images_per_second, training_seconds, ...
+    metrics.json                   images_per_second (EXR read + network + PNG write, all images),
+                                   training_seconds (0 when the model came from the cache),
+                                   model_cached, soc_seconds, images, inference_seconds
 """
 
 from __future__ import annotations

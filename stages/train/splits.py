@@ -58,20 +58,20 @@ def make_splits(take: np.ndarray, bar: np.ndarray, bar_dirs: dict[int, np.ndarra
                 held_out_take: str, held_out_fraction: float) -> Splits:
     """Masks over frames: training, novel light (3 interior bars), novel performance (a take), both.
 
-    ``held_out_take`` empty: the last take of the capture if it has several, else the last
-    ``held_out_fraction`` of the frames.
+    The novel performance is the final ``held_out_fraction`` of ``held_out_take`` (by default
+    the capture's last take): a held-out segment of a performance the model never saw, while
+    the beginning of that take still trains the model (a tiny capture has one OLAT cycle per
+    take, so holding out a whole take would halve the training lights). ``held_out_fraction``
+    1 holds out the whole take.
     """
     takes = list(dict.fromkeys(take.tolist()))
-    if held_out_take:
-        perf = take == held_out_take
-        name = held_out_take
-    elif len(takes) > 1:
-        name = takes[-1]
-        perf = take == name
-    else:
-        cut = int(round(len(take) * (1.0 - held_out_fraction)))
-        perf = np.arange(len(take)) >= cut
-        name = f"{takes[0] if takes else ''}[{cut}:]"
+    name = held_out_take or (takes[-1] if takes else "")
+    in_take = np.flatnonzero(take == name)
+    cut = int(round(len(in_take) * (1.0 - held_out_fraction)))
+    perf = np.zeros(len(take), bool)
+    perf[in_take[cut:]] = True
+    if held_out_fraction < 1.0:
+        name = f"{name}[{cut}:]"
     both_takes = set(bar[perf].tolist()) & set(bar[~perf].tolist())
     held_bars = interior_bars({b: d for b, d in bar_dirs.items() if b in set(bar.tolist())}, held_out_bars,
                               both_takes)

@@ -47,7 +47,7 @@ class TrainParams(StageParams):
                                  description="Model sizes (N, M, latent, channels, raymarch steps); see avatar.config.")
     image_width_px: int = Field(64, ge=0, description="Training/evaluation image width in pixels (0 = the capture's).")
     max_frames: int = Field(0, ge=0, description="Use at most this many OLAT frames, evenly spread (0 = all).")
-    iterations: int = Field(1500, ge=1, description="Training iterations of our model.")
+    iterations: int = Field(2000, ge=1, description="Training iterations of our model.")
     baseline: bool = Field(True, description="Also train the TRAvatar* baseline on the same data.")
     baseline_iterations: int = Field(0, ge=0, description="Training iterations of TRAvatar* (0 = same as ours).")
     batch_size: int = Field(4, ge=1, description="Images per iteration (the paper: 12).")
@@ -61,8 +61,8 @@ class TrainParams(StageParams):
     kld_weight: float = Field(0.001, ge=0, description="Weight of the encoder's KL divergence.")
     mat_weight: float = Field(0.1, ge=0, description="Weight of the matte loss (L1, matte vs accumulated opacity).")
     held_out_bars: int = Field(3, ge=1, description="Interior bars held out for the novel-light split.")
-    held_out_take: str = Field("", description="Take held out for the novel-performance split ('' = the last take).")
-    held_out_fraction: float = Field(0.2, gt=0, lt=1, description="With a single take: the final fraction held out.")
+    held_out_take: str = Field("", description="Take whose final segment is the novel performance ('' = the last take).")
+    held_out_fraction: float = Field(0.5, gt=0, le=1, description="Final fraction of that take held out (1 = all of it).")
     eval_images: int = Field(12, ge=1, description="Held-out images rendered per split for the metrics.")
     lpips: bool = Field(True, description="Compute LPIPS (AlexNet weights from assets/lpips).")
     curve_every: int = Field(100, ge=0, description="Iterations between learning-curve points (0 = none).")
@@ -212,6 +212,10 @@ def run(ctx: StageContext) -> None:
             scale = split in SCALED_SPLITS
             for name, value in image_metrics(pred, target, scale, lpips).items():
                 metrics[f"{kind}_{split}_{name}"] = value
+            # The same PSNR with the capture's own units as peak (EXR value 1), for comparison
+            # with figures computed on unnormalised linear images.
+            metrics[f"{kind}_{split}_psnr_capture_units"] = (metrics[f"{kind}_{split}_psnr"]
+                                                             + 20.0 * float(np.log10(image_scale)))
             if scale:
                 pred = pred * _scales(pred, target)
             renders[kind][split] = pred

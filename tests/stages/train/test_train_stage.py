@@ -21,7 +21,8 @@ SMALL_AVATAR = {"prims_per_side": 8, "voxels_per_side": 4, "latent_dim": 8, "enc
                 "base_channels": 16, "rgb_channels": [16, 12], "alpha_channels": [8, 4], "geometry_channels": 8,
                 "steps_per_ray": 12}
 BASE = {"avatar": SMALL_AVATAR, "image_width_px": 24, "batch_size": 2, "rays_per_image": 64, "eval_images": 2,
-        "curve_every": 6, "curve_images": 1, "checkpoint_every": 4, "previews": 1, "threads": 1}
+        "curve_every": 6, "curve_images": 1, "checkpoint_every": 4, "previews": 1, "threads": 1,
+        "held_out_fraction": 1.0}  # the whole short "speech" take: every split gets frames
 
 
 @pytest.fixture(scope="module")
