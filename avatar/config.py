@@ -26,7 +26,7 @@ class AvatarConfig(BaseModel):
         description="Output channels of the opacity branch's transposed convs; the last = M.")
     geometry_channels: int = Field(32, description="Hidden channels of the primitive position/rotation/scale delta branch.")
     steps_per_ray: int = Field(32, description="Raymarch samples per ray over its span through the union of primitive boxes.")
-    prim_overlap: float = Field(1.4, description="Primitive edge length as a multiple of the spacing of neighbouring guide points.")
+    prim_overlap: float = Field(1.6, description="Primitive edge length as a multiple of the spacing of neighbouring guide points.")
     layout_theta_deg: float = Field(105.0, description="Half-width, in degrees around +z, of the cylindrical UV layout over the head.")
     light_basis: int = Field(0, description="TRAvatar*: number of training lights in the fixed one-hot light basis (0 = ours).")
 
@@ -65,7 +65,7 @@ class AvatarConfig(BaseModel):
         return AvatarConfig(prims_per_side=64, voxels_per_side=16, latent_dim=256, encoder_hidden=256,
                             base_channels=256, rgb_channels=(256, 128, 128, 64, 64, 32, 48),
                             alpha_channels=(256, 128, 128, 64, 64, 32, 16), geometry_channels=64,
-                            steps_per_ray=128, prim_overlap=1.4)
+                            steps_per_ray=128, prim_overlap=1.6)
 
     @staticmethod
     def tiny() -> "AvatarConfig":

@@ -17,8 +17,8 @@ from avatar.config import AvatarConfig
 from avatar.layout import GuideLayout
 from avatar.raymarch import Primitives
 
-#: Sigmoid input giving a scale of exactly 1 x the base size at initialisation.
-_SCALE_INIT = float(np.log(0.25 / 1.0))
+#: Sigmoid input giving a scale of 1.1 x the base size at initialisation.
+_SCALE_INIT = float(np.log(0.1 / 0.9))
 
 #: softplus(-2) ~ 0.13: initial density = 0.13 / base half size.
 _ALPHA_INIT = -2.0
@@ -173,9 +173,9 @@ class RelightableMVP(nn.Module):
         # a primitive stays attached to its patch of the guide mesh.
         centre = base + (tbn @ (torch.tanh(delta[..., :3, None]) * half0[..., None]))[..., 0]
         rotation = tbn @ _rodrigues(delta[..., 3:6])
-        # Scales stay within [0.75, 2] x the base size: the smallest still overlaps its
-        # neighbours (prim_overlap > 1 / 0.75), so the volume prior cannot open holes.
-        half_extent = half0 * (0.75 + 1.25 * torch.sigmoid(delta[..., 6:9] + _SCALE_INIT))
+        # Scales stay within [1, 2] x the base size (which overlaps the neighbours by
+        # prim_overlap): the volume prior keeps primitives tight but cannot open holes.
+        half_extent = half0 * (1.0 + torch.sigmoid(delta[..., 6:9] + _SCALE_INIT))
         raw_alpha = self.alpha_branch(feature)  # [B, M_z, N*M, N*M]
         density = F.softplus(raw_alpha) * self.density_scale
         density = density.view(b, m, n, m, n, m).permute(0, 2, 4, 1, 3, 5).reshape(b, n * n, m, m, m)

@@ -114,7 +114,9 @@ def make_capture(root: Path, width_px: int = 48, cameras: int = 6, frames_per_ta
     manifest = {"subject": "synthetic", "fps": 24.0, "width": cams[0].width, "height": cams[0].height,
                 "cameras": [c.name for c in cams], "bars": len(bars), "takes": takes, "frames": manifest_frames}
     (out["capture"] / "manifest.json").write_text(json.dumps(manifest))
-    (out["stabilize"] / "cameras_head.json").write_text(json.dumps({"frames": cam_frames}))
+    # The stabilize stage's format: {"frames": {"<index>": [Camera.to_dict() with cam_from_head]}}.
+    (out["stabilize"] / "cameras_head.json").write_text(json.dumps(
+        {"space": "head", "frames": {str(f["index"]): f["cameras"] for f in cam_frames}}))
     np.savez(out["track"] / "meshes.npz", index=np.array(indices), vertices=np.stack(meshes),
              faces=face.triangles.astype(np.int32))
     np.savez(out["track"] / "tracking.npz", index=np.array(indices), weights=np.zeros((len(indices), len(names))),
