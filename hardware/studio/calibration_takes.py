@@ -68,7 +68,9 @@ class CalibrationTakeParams(BaseModel):
     noise: float = Field(0.003, ge=0, description="Sensor noise, standard deviation in linear units.")
     blur_px: float = Field(0.5, ge=0, description="Optical blur, Gaussian sigma in pixels.")
     seed: int = Field(0, description="Random seed for board poses and noise.")
-    supersample: int = Field(3, ge=1, le=8, description="Rays per pixel per axis for board images.")
+    supersample: int = Field(
+        2, ge=1, le=8, description="Rays per pixel per axis for board images (2 suffices at native resolution: "
+        "the calibration's saddle-point corner fit leaves ~0.01 px there).")
     mirror_supersample: int = Field(4, ge=1, le=12, description="Rays per pixel per axis on the spheres.")
     highlight_supersample: int = Field(
         24, ge=1, le=64, description="Rays per pixel per axis where a bar's highlight falls (a sub-pixel streak).")
@@ -396,18 +398,25 @@ def render_calibration_takes(cameras: Sequence[Camera], bars: Sequence[BarLight]
                              truth_dir: Path, params: CalibrationTakeParams,
                              board: CharucoBoardConfig = CharucoBoardConfig(),
                              spheres: MirrorSpheresConfig = MirrorSpheresConfig(),
-                             progress=None) -> None:
+                             progress=None, board_cameras: Sequence[Camera] | None = None) -> None:
     """Render the board and mirror-sphere takes for every camera into ``out_dir/calib``.
 
     Args:
-        cameras: the true cameras (the studio's, with distortion).
+        cameras: the true cameras (the studio's, with distortion) at the performance resolution
+            (the mirror take is shot at it).
         bars: the true LED bars.
         out_dir: the capture object's folder; ``calib/`` is written inside it.
         truth_dir: the capture truth folder; board poses and sphere centres go there.
         params: take settings (poses, noise, ...).
         board, spheres: the board print and the chrome balls.
         progress: optional ``Progress`` advanced once per camera and take.
+        board_cameras: the same cameras (same order) at the resolution the board take is shot at;
+            a real studio calibrates at the sensor's native resolution whatever resolution the
+            performance is later used at. Default: ``cameras``.
     """
+    board_cameras = list(cameras) if board_cameras is None else list(board_cameras)
+    if [c.name for c in board_cameras] != [c.name for c in cameras]:
+        raise ValueError("board_cameras must be the same cameras as cameras, in the same order")
     out_dir, truth_dir = Path(out_dir), Path(truth_dir)
     calib = out_dir / "calib"
     calib.mkdir(parents=True, exist_ok=True)
@@ -430,17 +439,17 @@ def render_calibration_takes(cameras: Sequence[Camera], bars: Sequence[BarLight]
         "bars": [int(b.id) for b in bars]}, indent=1))
     (truth_dir / "mirror_spheres.json").write_text(json.dumps(
         {"radius_m": spheres.radius_m, "centers_world": sphere_centers.tolist()}, indent=1))
-    for ci, cam in enumerate(cameras):
+    for ci, (cam, board_cam) in enumerate(zip(cameras, board_cameras)):
         cam_rng = np.random.default_rng([params.seed, ci])
         rays = None
         cdir = calib / "charuco" / cam.name
         cdir.mkdir(parents=True, exist_ok=True)
         for k, pose in enumerate(poses):
-            if not board_visible(cam, pose, board):
+            if not board_visible(board_cam, pose, board):
                 continue
             if rays is None:
-                rays = _supersampled_rays(cam, params.supersample)
-            img = render_board_image(cam, pose, board, tex, margin, params, cam_rng, rays)
+                rays = _supersampled_rays(board_cam, params.supersample)
+            img = render_board_image(board_cam, pose, board, tex, margin, params, cam_rng, rays)
             write_exr(cdir / f"{k:04d}.exr", img)
         del rays
         if progress is not None:
@@ -462,12 +471,15 @@ def takes_from_rig(rig) -> tuple[CharucoBoardConfig, MirrorSpheresConfig]:
 
 def render_rig_takes(out_dir: Path, truth_dir: Path, params: CalibrationTakeParams, scale: float = 0.3125,
                      camera_names: Sequence[str] | None = None, bar_ids: Sequence[int] | None = None,
-                     rig=None) -> tuple[list[Camera], list[BarLight]]:
+                     rig=None, board_scale: float = 1.0) -> tuple[list[Camera], list[BarLight]]:
     """Calibration takes of (a subset of) the studio rig, with the truth files the capture stage writes.
 
     For benchmarks and tests that need a capture's ``calib/`` without the performance:
     writes ``out_dir/calib`` and ``truth_dir`` (``cameras.json``, ``bars.json`` and the
-    take's own truth). Returns the true cameras and bars.
+    take's own truth), plus the ``manifest.json`` fields the calibration reads (cameras,
+    performance ``width``/``height``). The mirror take is at ``scale`` (the performance
+    resolution), the board take at ``board_scale`` (1.0: the rig's native resolution).
+    Returns the true cameras (at ``scale``) and bars.
     """
     from scene.camera import save_cameras
     from scene.rig import default_rig
@@ -479,7 +491,10 @@ def render_rig_takes(out_dir: Path, truth_dir: Path, params: CalibrationTakePara
             for b in light_bars]
     board, spheres = takes_from_rig(rig)
     params = params.model_copy(update={"volume_center_m": tuple(rig.head_center_m)})
-    render_calibration_takes(cameras, bars, out_dir, truth_dir, params, board, spheres)
+    board_cameras = [c for c in rig.cameras_at(board_scale) if camera_names is None or c.name in camera_names]
+    render_calibration_takes(cameras, bars, out_dir, truth_dir, params, board, spheres, board_cameras=board_cameras)
     save_cameras(Path(truth_dir) / "cameras.json", cameras)
+    (Path(out_dir) / "manifest.json").write_text(json.dumps(
+        {"cameras": [c.name for c in cameras], "width": cameras[0].width, "height": cameras[0].height}))
     (Path(truth_dir) / "bars.json").write_text(json.dumps({"bars": [b.to_dict() for b in light_bars]}, indent=1))
     return cameras, bars

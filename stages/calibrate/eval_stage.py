@@ -1,6 +1,9 @@
 """``calibrate_eval``: the calibrated cameras against the virtual studio's true cameras.
 
-Both are in the studio world (the calibration fixes its world by the board's fixture pose),
+Intrinsics are compared at the performance resolution (``calibrate/cameras.json`` and the
+truth's ``cameras.json``, e.g. 240x320 at the tiny preset); ``principal_err_px_max_native``
+repeats the principal point comparison at the board images' (native) resolution, with the
+true cameras scaled there. Both are in the studio world (the calibration fixes its world by the board's fixture pose),
 so the errors are taken directly. ``volume_reproj_err_px_*`` is the pixel distance
 between the true and calibrated projections of points filling the capture volume: the
 error downstream stages see. A similarity fit (Umeyama, camera centres) is reported
@@ -104,6 +107,15 @@ def run(ctx: StageContext) -> None:
         raise InputError(f"{est_path}: no camera in common with the ground truth {true_path}")
     metrics = camera_errors(est, true)
     metrics["cameras_missing"] = len(missing)
+    native_path = ctx.input("calibrate") / "cameras_native.json"
+    if native_path.is_file():
+        native = {c.name: c for c in load_cameras(native_path)}
+        metrics["principal_err_px_max_native"] = max(
+            float(np.hypot(c.cx - t.cx, c.cy - t.cy))
+            for n, c in native.items() if n in true
+            for t in [true[n].scaled(c.width / true[n].width)])
+        metrics["calibration_width_px"] = next(iter(native.values())).width
+    metrics["compared_width_px"] = next(iter(true.values())).width
     ctx.metrics.update(metrics)
     for key, value in metrics.items():
         ctx.log.info("%s = %.4g", key, value)

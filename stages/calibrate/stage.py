@@ -7,9 +7,15 @@ everything jointly in pycolmap (robust BA, board corners held at their printed
 geometry, which fixes metric scale), and express the result in the studio world: the
 board's fixture pose (``calib/board.json``) at the reference frame defines it.
 
-Outputs: ``cameras.json`` (``scene.camera.save_cameras``), ``colmap/text`` and
-``colmap/binary`` (COLMAP model), ``board_poses.json``, ``report.json`` and
-``residuals/<cam>.png``.
+The board take is shot at the cameras' native resolution (as a studio calibrates, whatever
+resolution the performance is later used at); the cameras are calibrated there and
+``cameras.json`` holds them scaled to the performance images' resolution (``manifest.json``
+width/height; pixel-centre convention, ``Camera.scaled``), ``cameras_native.json`` at the
+board images' resolution.
+
+Outputs: ``cameras.json``, ``cameras_native.json`` (``scene.camera.save_cameras``),
+``colmap/text`` and ``colmap/binary`` (COLMAP model at the board images' resolution, whose
+keypoints it holds), ``board_poses.json``, ``report.json`` and ``residuals/<cam>.png``.
 """
 
 from __future__ import annotations
@@ -36,8 +42,9 @@ class CalibrateParams(StageParams):
     min_corners: int = Field(8, ge=4, description="Fewest ChArUco corners for a board image to be used.")
     min_frames: int = Field(4, ge=3, description="Fewest usable board images per camera.")
     camera_model: Literal["SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL_OPENCV"] = Field(
-        "RADIAL", description="Lens model (COLMAP names): RADIAL = square pixels, k1, k2; OPENCV adds fx != fy, "
-        "p1, p2. Narrow lenses cannot separate tangential terms from the principal point: keep RADIAL.")
+        "OPENCV", description="Lens model (COLMAP names): OPENCV = fx, fy, cx, cy, k1, k2, p1, p2; RADIAL = square "
+        "pixels, k1, k2 only. Real lenses are slightly decentred: without p1, p2 the principal point and the "
+        "rotation absorb the tangential terms (0.1 deg off on the studio's narrow lenses).")
     max_saturated_fraction: float = Field(
         0.02, gt=0, le=1, description="A board image with more pixels at the white level than this is over-exposed.")
     max_edge_width_px: float = Field(3.5, gt=0, description="A board image whose edges are wider than this is blurred.")
@@ -50,6 +57,31 @@ class CalibrateParams(StageParams):
         None, description="Board frame shot in the fixture (defines the world); default: calib/board.json's.")
     allow_missing_cameras: bool = Field(
         False, description="Drop (with a warning) cameras that cannot be calibrated instead of failing.")
+
+
+def _performance_size(capture: Path) -> tuple[int, int] | None:
+    """(width, height) of the performance images from ``manifest.json``; None when it does not say."""
+    manifest = capture / "manifest.json"
+    if not manifest.is_file():
+        return None
+    try:
+        d = json.loads(manifest.read_text())
+        return (int(d["width"]), int(d["height"])) if "width" in d and "height" in d else None
+    except (ValueError, TypeError) as err:
+        raise InputError(f"{manifest}: bad width/height ({err}); re-run the capture stage") from err
+
+
+def to_performance_resolution(cam: Camera, size: tuple[int, int] | None) -> Camera:
+    """``cam`` (calibrated at its board images' resolution) at the performance resolution ``size``."""
+    if size is None or size == (cam.width, cam.height):
+        return cam
+    factor = size[0] / cam.width
+    scaled = cam.scaled(factor)
+    if (scaled.width, scaled.height) != size:
+        raise InputError(f"camera {cam.name}: board images are {cam.width}x{cam.height} but the performance images "
+                         f"are {size[0]}x{size[1]} (manifest.json), not the same aspect ratio; the calibration "
+                         "take must be shot with the performance's sensor crop")
+    return scaled
 
 
 def _list_cameras(capture: Path) -> list[str]:
@@ -158,7 +190,9 @@ def run(ctx: StageContext) -> None:
     cameras = [ba.cameras[n].with_pose(ba.cameras[n].cam_from_world @ rig_from_world) for n in names]
     world_from_board = {f: rig_from_world.inverse() @ p for f, p in ba.rig_from_board.items()}
 
-    save_cameras(ctx.out / "cameras.json", cameras)
+    save_cameras(ctx.out / "cameras_native.json", cameras)
+    perf_size = _performance_size(capture)
+    save_cameras(ctx.out / "cameras.json", [to_performance_resolution(c, perf_size) for c in cameras])
     export_colmap(ctx.out / "colmap", {c.name: c for c in cameras}, detections, world_from_board, corners_board, ref,
                   params.camera_model)
     (ctx.out / "board_poses.json").write_text(json.dumps(
@@ -179,9 +213,12 @@ def run(ctx: StageContext) -> None:
         ctx.log.info("%s: %d frames, %d corners, RMS %.3f px", cam.name, len(detections[cam.name]), len(res), rms)
     (ctx.out / "report.json").write_text(json.dumps(
         {"reference_camera": ref, "reference_frame": reference_frame, "dropped_cameras": sorted(problems),
+         "calibration_size": list(sizes[names[0]]), "performance_size": list(perf_size) if perf_size else None,
          "bundle_adjustment": ba.summary, "cameras": report}, indent=1))
     res = np.concatenate(all_res)
+    # pixels of the board images (the native resolution); cameras.json may be at another
     ctx.metrics["reproj_rms_px"] = float(np.sqrt(np.mean(np.sum(res ** 2, axis=1))))
+    ctx.metrics["calibration_width_px"] = sizes[names[0]][0]
     ctx.metrics["reproj_rms_px_max_camera"] = max(r["reproj_rms_px"] for r in report.values())
     ctx.metrics["cameras"] = len(cameras)
     ctx.metrics["cameras_dropped"] = len(problems)

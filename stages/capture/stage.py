@@ -71,6 +71,9 @@ class CaptureParams(StageParams):
     half_float: bool = Field(True, description="Store EXR images as float16 (else float32).")
     calibration_takes: bool = Field(True, description="Also film the ChArUco board and mirror-sphere takes.")
     calibration_poses: int = Field(24, ge=2, description="Board poses in the ChArUco take.")
+    calibration_image_scale: float = Field(
+        1.0, gt=0, le=2, description="Resolution of the ChArUco take, times the rig's reference resolution "
+        "(1.0 = the sensors' native 768x1024, as a studio calibrates whatever image_scale the performance uses).")
     strip_camera: str = Field("cam00", description="Camera whose consecutive frames make strip.png.")
     strip_frames: int = Field(12, ge=1, description="Frames in strip.png.")
 
@@ -306,7 +309,9 @@ def _calibration_takes(ctx: StageContext, params: CaptureParams, cameras, truth:
     take_params = CalibrationTakeParams(poses=params.calibration_poses, seed=params.noise_seed,
                                         volume_center_m=tuple(rig.head_center_m))
     with ctx.progress(2 * len(cameras), "calibration takes") as progress:
-        render_calibration_takes(cameras, bars, ctx.out, truth, take_params, board, spheres, progress=progress)
+        board_cameras = {c.name: c for c in rig.cameras_at(params.calibration_image_scale)}
+        render_calibration_takes(cameras, bars, ctx.out, truth, take_params, board, spheres, progress=progress,
+                                 board_cameras=[board_cameras[c.name] for c in cameras])
 
 
 def _write_truth(truth: Path, rig: RigConfig, cameras, subject, performance, lit_per_pulse, streams,

@@ -68,6 +68,29 @@ def _grey(path: Path) -> np.ndarray:
     return img[..., :3].mean(axis=-1).astype(np.float64) if img.shape[-1] >= 3 else img[..., 0].astype(np.float64)
 
 
+def _at_mirror_resolution(cams: dict[str, Camera], capture: Path, image_name: str) -> dict[str, Camera]:
+    """The calibrated cameras at the resolution of their mirror take (it may be shot at native resolution).
+
+    ``Camera.scaled`` keeps the pixel-centre convention, so this is exact, not an approximation.
+    """
+    out = {}
+    for name, cam in cams.items():
+        path = capture / "calib" / "mirror" / name / image_name
+        if not path.is_file():
+            out[name] = cam
+            continue
+        h, w = _grey(path).shape
+        if (w, h) == (cam.width, cam.height):
+            out[name] = cam
+            continue
+        scaled = cam.scaled(w / cam.width)
+        if (scaled.width, scaled.height) != (w, h):
+            raise InputError(f"{path}: {w}x{h} mirror image, but camera {name} is calibrated at "
+                             f"{cam.width}x{cam.height} (another aspect ratio); the take does not match the camera")
+        out[name] = scaled
+    return out
+
+
 def locate_spheres(cams: dict[str, Camera], capture: Path, image_name: str, radius_m: float, count: int, log
                    ) -> tuple[list[np.ndarray], dict[tuple[str, int], Silhouette], list[float]]:
     """Ball centres in world space and, per (camera, ball), the silhouette seen."""
@@ -114,6 +137,7 @@ def run(ctx: StageContext) -> None:
     spec = _load_mirror_spec(capture)
     radius = float(spec["radius_m"])
     image_name = str(spec.get("silhouette_image", "room.exr"))
+    cams = _at_mirror_resolution(cams, capture, image_name)
     centres, sil_of, sphere_rms = locate_spheres(cams, capture, image_name, radius, int(spec.get("count", 0)), ctx.log)
     bar_ids = [int(b) for b in spec.get("bars", [])] or sorted(
         {int(p.stem[3:]) for p in (capture / "calib" / "mirror").glob("*/bar*.exr")})

@@ -72,6 +72,8 @@ class MatteParams(StageParams):
     gate_high: float = Field(0.6, gt=0, le=1, description="Semantic gate: matte kept as is where the dilated semantic foreground is above this.")
     device: Literal["auto", "cpu", "cuda"] = Field("auto", description="Torch device; 'auto' uses CUDA when present.")
     contact_sheet_frames: int = Field(4, ge=1, description="Frames (rows) shown in the contact sheet.")
+    threads: int = Field(0, ge=0, description="torch CPU threads (0 = torch's default); 1 avoids thread "
+                         "thrashing on a small, shared CPU.")
 
 
 def training_code_files() -> list[Path]:
@@ -200,6 +202,10 @@ def run(ctx: StageContext) -> None:
     from scene.image_io import write_png16
 
     params: MatteParams = ctx.params  # type: ignore[assignment]
+    if params.threads:
+        import torch
+
+        torch.set_num_threads(params.threads)
     capture = ctx.input("capture")
     manifest = _read_manifest(capture)
     device = _device(params)

@@ -79,6 +79,7 @@ def _render(args: argparse.Namespace, log: logging.Logger) -> int:
     from pipeline.progress import progress_factory
     from pipeline.testing import SerialExecutor
     from pipeline.workspace import Workspace, workspace_root
+    from stages.evaluate.limits import workspace_light_warnings
     from stages.relight.sequences import read_light_position
     from stages.relight.stage import RelightParams, run
 
@@ -109,6 +110,9 @@ def _render(args: argparse.Namespace, log: logging.Logger) -> int:
     root = find_project_root()
     workspace = Workspace(workspace_root(root, args.workspaces), args.subject)
     inputs = {s: _stage_folder(workspace, s) for s in ("train", "track", "capture")}
+    # The evaluate stage's measured warning zone (nothing when the subject was never evaluated).
+    for message in workspace_light_warnings(workspace, points, args.orbit, args.frames if args.orbit > 0 else 0):
+        log.warning(message)
     out = Path(args.out) if args.out else root / "renders" / args.subject
     out.mkdir(parents=True, exist_ok=True)
     (out / ".cache").mkdir(exist_ok=True)

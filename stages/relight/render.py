@@ -50,8 +50,11 @@ class HeadRenderer:
     """A trained model plus what rendering needs (raymarch steps, light batch size, device)."""
 
     def __init__(self, model: RelightableMVP, steps: int, light_batch: int = 16,
-                 device: str | torch.device = "cpu") -> None:
+                 device: str | torch.device = "cpu", rgb_scale: float = 1.0) -> None:
+        """``rgb_scale`` multiplies rendered RGB: ``1 / meta["image_scale"]`` of the trained model
+        turns the network's training units back into the capture's linear units."""
         self.model = model.eval().to(device)
+        self.rgb_scale = float(rgb_scale)
         self.steps = int(steps)
         self.light_batch = max(1, int(light_batch))
         self.device = torch.device(device)
@@ -94,7 +97,7 @@ class HeadRenderer:
         rays_o, rays_d = camera_rays(camera, self.device)
         rgb = self.summed_rgb(geometry, camera.center_world, light_pos, light_rgb)
         res = raymarch(geometry.primitives(rgb), rays_o, rays_d, self.steps)
-        return _image(res.rgb[0], res.alpha[0], camera)
+        return _image(res.rgb[0] * self.rgb_scale, res.alpha[0], camera)
 
     @torch.no_grad()
     def render_lights_naive(self, geometry: DecodedGeometry, camera: Camera, light_pos: np.ndarray,
@@ -112,7 +115,7 @@ class HeadRenderer:
             alpha = res.alpha[0]
         if alpha is None:
             raise ValueError("render: no lights given")
-        return _image(total.float(), alpha, camera)
+        return _image(total.float() * self.rgb_scale, alpha, camera)
 
 
 def _image(rgb: torch.Tensor, alpha: torch.Tensor, camera: Camera) -> Image:

@@ -95,7 +95,7 @@ def _device(name: str) -> str:
 
 
 def load_inputs(ctx_inputs: dict[str, Path], params: RelightParams, device: str):
-    """The trained model, the default (first tracked) mesh and the driving meshes of novel expressions."""
+    """The trained model and its metadata, the default (first tracked) mesh and the driving meshes of novel expressions."""
     from avatar.io import load_trained
 
     model_dir = ctx_inputs["train"] / "models" / "ours"
@@ -111,7 +111,7 @@ def load_inputs(ctx_inputs: dict[str, Path], params: RelightParams, device: str)
     expressions = None
     if params.expressions_csv or params.expressions_obj_dir:
         expressions = _expression_meshes(ctx_inputs, params, default_mesh.shape[0])
-    return model, default_mesh, expressions
+    return model, meta, default_mesh, expressions
 
 
 def _expression_meshes(ctx_inputs: dict[str, Path], params: RelightParams, num_vertices: int) -> np.ndarray:
@@ -162,9 +162,11 @@ def run(ctx: StageContext) -> None:
     if params.light_method not in ("uniform", "adaptive"):
         raise ConfigError(f"relight.light_method: '{params.light_method}' is not one of 'uniform', 'adaptive'")
     device = _device(params.device)
-    model, default_mesh, expressions = load_inputs(dict(ctx.inputs), params, device)
+    model, meta, default_mesh, expressions = load_inputs(dict(ctx.inputs), params, device)
     steps = params.steps_per_ray or model.config.steps_per_ray
-    renderer = HeadRenderer(model, steps, params.light_batch, device)
+    # The network learnt normalised images; EXR outputs are in the capture's linear units.
+    renderer = HeadRenderer(model, steps, params.light_batch, device,
+                            rgb_scale=1.0 / float(meta.get("image_scale", 1.0)))
     view = seq.ViewSpec(params.width_px, params.height_px, params.distance_m, params.fov_deg,
                         tuple(float(v) for v in default_mesh.mean(0)))
     mask = BackMask(cone_half_angle_deg=params.back_cone_deg)

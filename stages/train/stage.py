@@ -73,6 +73,9 @@ class TrainParams(StageParams):
     threads: int = Field(0, ge=0, description="torch CPU threads (0 = torch's default).")
     device: str = Field("auto", description="'auto' (CUDA if present), 'cpu' or 'cuda'.")
     previews: int = Field(2, ge=0, description="Preview images written per split.")
+    processes: int = Field(1, ge=1, description="Data-parallel training processes (torch.distributed DDP, launched "
+                           "with torchrun; gloo on CPU, nccl with one GPU per process). batch_size is the global "
+                           "batch and must divide by it; 1 = train in the stage's own process.")
 
 
 def _device(name: str) -> torch.device:
@@ -85,7 +88,9 @@ def _device(name: str) -> torch.device:
 
 def _run_key(params: TrainParams, inputs: dict[str, Path]) -> str:
     """Checkpoint folder key: params, input objects and the training code (so stale checkpoints are never resumed)."""
-    h = hashlib.sha256(params.model_dump_json().encode())
+    # The process count is left out: every rank draws the same global batch, so a checkpoint
+    # resumes with any number of processes.
+    h = hashlib.sha256(params.model_dump_json(exclude={"processes"}).encode())
     for name in sorted(inputs):
         h.update(f"{name}={Path(inputs[name]).resolve()}".encode())
     root = Path(__file__).resolve().parents[2]
@@ -119,9 +124,24 @@ def _peak_memory_mb(device: torch.device) -> float:
 
 def run(ctx: StageContext) -> None:
     params: TrainParams = ctx.params  # type: ignore[assignment]
+    if params.batch_size % params.processes:
+        raise ConfigError(f"train.batch_size={params.batch_size} does not divide by train.processes="
+                          f"{params.processes}; every process takes an equal share of the global batch")
+    if params.processes > 1:
+        from stages.train.launch import launch_ddp
+
+        launch_ddp(ctx)
+        return
+    train(ctx)
+
+
+def train(ctx: StageContext, rank: int = 0, world_size: int = 1, device: torch.device | None = None) -> None:
+    """The whole stage in this process; with ``world_size > 1`` one rank of a DDP run (rank 0 writes)."""
+    params: TrainParams = ctx.params  # type: ignore[assignment]
     if params.threads:
         torch.set_num_threads(params.threads)
-    device = _device(params.device)
+    device = device or _device(params.device)
+    lead = rank == 0
     inputs = {k: ctx.input(k) for k in ("capture", "stabilize", "track", "matte", "lightcal")}
     data = load_train_data(inputs, params.image_width_px, ctx.log, params.max_frames)
     bar_dirs = {}
@@ -134,7 +154,8 @@ def run(ctx: StageContext) -> None:
     if len(train_frames) == 0:
         raise InputError("train: no training frames left after holding out "
                          f"bars {splits.held_out_bars} and take '{splits.held_out_take}'; capture more OLAT frames")
-    _write_splits(ctx.out / "splits.json", data, splits)
+    if lead:
+        _write_splits(ctx.out / "splits.json", data, splits)
     # One global exposure for the data: OLAT images are dark (a single bar), so they are
     # scaled to put the 99.5th percentile of training foreground pixels at 1. Losses are in a
     # sane range and PSNR's peak (1) is the subject's brightest pixels, not an arbitrary unit.
@@ -153,20 +174,14 @@ def run(ctx: StageContext) -> None:
     pairs = {s: eval_pairs(np.flatnonzero(splits.mask(s)), num_cams, params.eval_images) for s in SPLITS}
     curve_pairs = pairs["novel_light"][:params.curve_images]
     lpips = None
-    if params.lpips:
+    if params.lpips and lead:
         from avatar.lpips import LPIPS
 
         lpips = LPIPS().to(device)
     key = _run_key(params, inputs)
     ckpt_dir = ctx.cache_dir / key
     ckpt_dir.mkdir(parents=True, exist_ok=True)
-    writer = None
-    try:
-        from torch.utils.tensorboard import SummaryWriter
-
-        writer = SummaryWriter(str(ctx.out / "tensorboard"))
-    except ImportError:
-        ctx.log.warning("tensorboard is not installed; no TensorBoard logs")
+    writer = _tensorboard_writer(ctx) if lead else None
     weights = LossWeights(params.pho_weight, params.geo_weight, params.vol_weight, params.kld_weight, params.mat_weight)
     kinds = ["ours"] + (["travatar"] if params.baseline else [])
     curves, renders, metrics = {}, {}, ctx.metrics
@@ -187,8 +202,8 @@ def run(ctx: StageContext) -> None:
                                rays_per_image=params.rays_per_image, lr=params.lr, weights=weights,
                                seed=params.seed, ckpt_path=ckpt_dir / f"{kind}.pt",
                                checkpoint_every=params.checkpoint_every, spike_factor=params.spike_factor,
-                               log=ctx.log, curve_every=params.curve_every, curve_fn=curve_fn, writer=writer,
-                               lr_decay_to=params.lr_decay_to)
+                               log=ctx.log, curve_every=params.curve_every, curve_fn=curve_fn if lead else None,
+                               writer=writer, lr_decay_to=params.lr_decay_to, rank=rank, world_size=world_size)
         ctx.log.info("%s: %d parameters, %d primitives of %d^3 voxels", kind, count_parameters(model),
                      config.num_prims, config.voxels_per_side)
         with ctx.progress(iterations, f"{kind} it") as progress:
@@ -198,6 +213,8 @@ def run(ctx: StageContext) -> None:
         metrics[f"{kind}_seconds"] = state.train_seconds
         metrics[f"{kind}_rollbacks"] = state.rollbacks
         model.eval()
+        if not lead:
+            continue  # the other ranks only train
         extra = {"image_scale": image_scale, "basis_bars": basis_bars, "basis_directions": np.stack([bar_dirs[b] for b in basis_bars]).tolist(),
                  "held_out_bars": list(splits.held_out_bars),
                  "bar_intensity": {int(b): float(torch.exp(model.log_bar_intensity[b]).detach()) for b in basis_bars}}
@@ -219,6 +236,8 @@ def run(ctx: StageContext) -> None:
             if scale:
                 pred = pred * _scales(pred, target)
             renders[kind][split] = pred
+    if not lead:
+        return
     metrics["iterations"] = metrics["ours_iterations"]
     metrics["seconds"] = sum(metrics[f"{k}_seconds"] for k in kinds)
     metrics["iterations_per_second"] = metrics["ours_iterations"] / max(metrics["ours_seconds"], 1e-9)
@@ -235,6 +254,15 @@ def run(ctx: StageContext) -> None:
     (ctx.out / "table.md").write_text(table)
     ctx.log.info("results (linear RGB; novel-light predictions exposure-matched):\n%s", table)
     _write_previews(ctx.out / "previews", tensors, pairs, renders, params.previews)
+
+
+def _tensorboard_writer(ctx: StageContext):
+    try:
+        from torch.utils.tensorboard import SummaryWriter
+    except ImportError:
+        ctx.log.warning("tensorboard is not installed; no TensorBoard logs")
+        return None
+    return SummaryWriter(str(ctx.out / "tensorboard"))
 
 
 def _targets(t: TrainTensors, pairs: list[tuple[int, int]]) -> torch.Tensor:

@@ -5,6 +5,14 @@ the optimiser, so a killed run resumes from its last checkpoint and replays exac
 iterations an uninterrupted run would have done. A NaN or a loss spike restores the last
 good state (model and optimiser) with a warning and halves the learning rate; the sampler
 goes on, so the offending batch is not replayed.
+
+Data-parallel training (``world_size > 1``, inside an initialised ``torch.distributed``
+process group): every rank draws the same global batch from the same generator and keeps
+its contiguous share of it, the model is wrapped in ``DistributedDataParallel`` (gradients
+averaged over ranks, so the step equals the single-process step on the whole batch), the
+loss terms are averaged over ranks (so rollback decisions agree) and only rank 0 writes
+checkpoints, logs and the learning curve. The generator state is the same on every rank,
+so a checkpoint resumes with any number of processes.
 """
 
 from __future__ import annotations
@@ -22,6 +30,7 @@ from typing import Callable
 import numpy as np
 import torch
 import torch.nn.functional as F
+from torch import nn
 
 from avatar.model import RelightableMVP, kl_divergence
 from avatar.raymarch import raymarch
@@ -119,6 +128,19 @@ def _atomic_save(obj: dict, path: Path) -> None:
     os.replace(tmp, path)
 
 
+class _BatchLoss(nn.Module):
+    """The trainer's loss as a module's forward, so DistributedDataParallel can wrap it."""
+
+    def __init__(self, trainer: "ModelTrainer") -> None:
+        super().__init__()
+        self.model = trainer.model  # the parameters DDP synchronises
+        self._losses = trainer.losses
+
+    def forward(self, frames: torch.Tensor, cams: torch.Tensor, pix: torch.Tensor,
+                eps: torch.Tensor) -> tuple[torch.Tensor, dict[str, float]]:
+        return self._losses(frames, cams, pix, eps)
+
+
 class ModelTrainer:
     """Trains one model on the training frames; checkpoints under ``ckpt_path``."""
 
@@ -126,7 +148,14 @@ class ModelTrainer:
                  batch_size: int, rays_per_image: int, lr: float, weights: LossWeights, seed: int,
                  ckpt_path: Path, checkpoint_every: int, spike_factor: float, log: logging.Logger,
                  curve_every: int = 0, curve_fn: Callable[[], float] | None = None, writer=None,
-                 lr_decay_to: float = 1.0) -> None:
+                 lr_decay_to: float = 1.0, rank: int = 0, world_size: int = 1) -> None:
+        """``rank``/``world_size``: this process's place in an initialised process group (1 = no DDP).
+
+        ``batch_size`` is the global batch; with DDP it must divide by ``world_size``.
+        """
+        if batch_size % world_size:
+            raise ValueError(f"batch_size {batch_size} does not divide by {world_size} processes")
+        self.rank, self.world_size = rank, world_size
         self.r, self.t = renderer, tensors
         self.model = renderer.model
         self.train_frames = np.asarray(train_frames)
@@ -140,6 +169,15 @@ class ModelTrainer:
         self.gen.manual_seed(seed)
         self.state = TrainState(lr=lr)
         self._good: dict | None = None
+        self._loss_fn: Callable = self.losses
+        if world_size > 1:
+            from torch.nn.parallel import DistributedDataParallel
+
+            dev = tensors.images.device
+            # TRAvatar* decodes through its light basis, which leaves some of the model's
+            # parameters out of the graph; ours uses every parameter each iteration.
+            self._loss_fn = DistributedDataParallel(_BatchLoss(self), device_ids=[dev] if dev.type == "cuda" else None,
+                                                    find_unused_parameters=renderer.kind != "ours")
 
     # ---- checkpoints -------------------------------------------------------------------------
     def _snapshot(self) -> dict:
@@ -148,7 +186,8 @@ class ModelTrainer:
 
     def save_checkpoint(self) -> None:
         snap = self._snapshot()
-        _atomic_save(snap, self.ckpt_path)
+        if self.rank == 0:  # every rank holds the same state; one writer
+            _atomic_save(snap, self.ckpt_path)
         self._good = copy.deepcopy({"model": snap["model"], "optim": snap["optim"]})
 
     def try_resume(self) -> bool:
@@ -223,10 +262,36 @@ class ModelTrainer:
                        "vol": float(vol.detach()),
                        "kld": float(kld.detach()), "mat": float(mat.detach()), "psnr": psnr}
 
+    def _share(self) -> slice:
+        """This rank's contiguous part of the global batch."""
+        n = self.batch_size // self.world_size
+        return slice(self.rank * n, (self.rank + 1) * n)
+
+    def _mean_over_ranks(self, terms: dict[str, float]) -> dict[str, float]:
+        """Loss terms of the global batch (every term is a batch mean and shares are equal)."""
+        import torch.distributed as dist
+
+        keys = [k for k in terms if k != "psnr"]
+        values = torch.tensor([terms[k] for k in keys], dtype=torch.float64)
+        if dist.get_backend() == "nccl":
+            values = values.to(self.t.images.device)
+        dist.all_reduce(values)
+        out = dict(zip(keys, (values.cpu() / self.world_size).tolist()))
+        out["psnr"] = -10.0 * math.log10(max(out["pho"], 1e-12)) if math.isfinite(out["pho"]) else float("nan")
+        return out
+
     def step(self) -> dict[str, float]:
         frames, cams, pix = self.sample_batch()
         eps = torch.randn(self.batch_size, self.model.config.latent_dim, generator=self.gen)
-        total, terms = self.losses(frames, cams, pix, eps)
+        if self.world_size > 1:
+            share = self._share()
+            total, terms = self._loss_fn(frames[share], cams[share], pix[share], eps[share])
+            # DDP expects a backward after each forward; its all-reduce also keeps the ranks in step.
+            self.optim.zero_grad(set_to_none=True)
+            total.backward()
+            terms = self._mean_over_ranks(terms)
+        else:
+            total, terms = self.losses(frames, cams, pix, eps)
         bad = not math.isfinite(terms["loss"])
         warm = self.state.iteration > 50 and math.isfinite(self.state.loss_ema)
         if not bad and warm and terms["loss"] > self.spike_factor * self.state.loss_ema:
@@ -236,8 +301,9 @@ class ModelTrainer:
         if bad:
             self._rollback("loss is not finite")
             return terms
-        self.optim.zero_grad(set_to_none=True)
-        total.backward()
+        if self.world_size == 1:
+            self.optim.zero_grad(set_to_none=True)
+            total.backward()
         grads_ok = all(p.grad is None or bool(torch.isfinite(p.grad).all()) for p in self.model.parameters())
         if not grads_ok:
             self._rollback("gradient is not finite")

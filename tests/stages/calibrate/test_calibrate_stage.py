@@ -34,22 +34,63 @@ def _copy_capture(capture: Path, dst: Path) -> Path:
 
 
 def test_accuracy_against_ground_truth(calibrated):
-    # 5 cameras at 240x320, 14 board poses (the full rig at 24+ poses does better: benchmarks/bench_calibration.py)
+    # 5 cameras, board take at 384x512 (half native), 14 poses, errors at the performance 240x320; the full rig
+    # at native resolution and 24 poses does better (benchmarks/bench_calibration.py). These bounds fail with
+    # OpenCV's cornerSubPix (~0.1 px corner bias) or without tangential distortion (pp 2-3 px, rotation 0.1-0.2 deg).
     _, m = calibrated
-    assert m["reproj_rms_px"] <= 0.12
-    assert m["focal_err_pct_max"] <= 0.25
-    assert m["principal_err_px_max"] <= 4.0
-    assert m["center_err_mm_max"] <= 3.0
-    assert m["rotation_err_deg_max"] <= 0.3
-    assert m["volume_reproj_err_px_max"] <= 0.5  # the capture volume projects where it should
+    assert m["reproj_rms_px"] <= 0.03
+    assert m["focal_err_pct_max"] <= 0.06
+    assert m["principal_err_px_max"] <= 1.5
+    assert m["center_err_mm_max"] <= 0.8
+    assert m["rotation_err_deg_max"] <= 0.08
+    assert m["volume_reproj_err_px_max"] <= 0.2  # the capture volume projects where it should
     assert m["cameras"] == 5 and m["cameras_dropped"] == 0
+
+
+def test_cameras_json_is_at_the_performance_resolution(calibrated, calib_capture):
+    out, _ = calibrated
+    perf = {c.name: c for c in load_cameras(out / "cameras.json")}
+    native = {c.name: c for c in load_cameras(out / "cameras_native.json")}
+    truth = {c.name: c for c in load_cameras(calib_capture[1] / "cameras.json")}
+    for name, cam in perf.items():
+        assert (cam.width, cam.height) == (truth[name].width, truth[name].height) == (240, 320)
+        assert (native[name].width, native[name].height) == (384, 512)
+        back = native[name].scaled(240 / 384)  # pixel-centre convention: (c + 0.5) * s - 0.5
+        assert abs(back.cx - cam.cx) < 1e-9 and abs(back.fx - cam.fx) < 1e-9
+        assert np.allclose(native[name].cam_from_world.matrix(), cam.cam_from_world.matrix())
+
+
+def test_saddle_refine_finds_a_blurred_x_junction_under_perspective():
+    from scipy.ndimage import gaussian_filter
+
+    from stages.calibrate.board import saddle_refine
+
+    h = w = 41
+    true = np.array([20.3, 19.6])
+    yy, xx = np.mgrid[0:h, 0:w].astype(float)
+    # two lines through the corner at 70 degrees (a foreshortened board), 8x supersampled, then blurred
+    fine = 8
+    ys, xs = (np.mgrid[0:h * fine, 0:w * fine] + 0.5) / fine - 0.5
+    a, b = np.array([1.0, 0.25]), np.array([-0.3, 1.0])
+    dx, dy = xs - true[0], ys - true[1]
+    img = ((dx * a[0] + dy * a[1] > 0) == (dx * b[0] + dy * b[1] > 0)).astype(float)
+    img = gaussian_filter(img.reshape(h, fine, w, fine).mean(axis=(1, 3)), 0.6)
+    found, ok = saddle_refine(img, np.array([[21.0, 19.0], [5.0, 5.0]]), 3.0)
+    assert ok[0] and np.linalg.norm(found[0] - true) < 0.05
+    assert not ok[1]  # a flat patch is no saddle
+    classic = np.array([[21.0, 19.0]], np.float32).reshape(-1, 1, 2)
+    import cv2
+
+    cv2.cornerSubPix(img.astype(np.float32), classic, (3, 3), (-1, -1),
+                     (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 50, 1e-4))
+    assert np.linalg.norm(found[0] - true) < np.linalg.norm(classic.reshape(2) - true)
 
 
 def test_outputs_colmap_model_and_report(calibrated):
     import pycolmap
 
     out, _ = calibrated
-    cams = {c.name: c for c in load_cameras(out / "cameras.json")}
+    cams = {c.name: c for c in load_cameras(out / "cameras_native.json")}
     rec = pycolmap.Reconstruction(str(out / "colmap" / "binary"))
     assert rec.num_cameras() == len(cams) and rec.num_rigs() == 1
     for image in rec.images.values():

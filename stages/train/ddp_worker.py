@@ -1,0 +1,79 @@
+"""One rank of a data-parallel train run; started by ``torchrun`` (see ``stages.train.launch``).
+
+Usage (what the launcher runs)::
+
+    python -m torch.distributed.run --standalone --nproc_per_node N -m stages.train.ddp_worker JOB.json
+
+Reads the job file, joins the process group (nccl with one GPU per rank, gloo on CPU), and
+runs ``stages.train.stage.train`` as rank ``RANK`` of ``WORLD_SIZE``. Rank 0 writes the
+outputs, checkpoints and the metrics file named in the job.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import sys
+from datetime import timedelta
+from pathlib import Path
+
+import torch
+import torch.distributed as dist
+
+from pipeline.executors import LocalExecutor
+from pipeline.progress import progress_factory
+from pipeline.stage import StageContext
+from stages.train.stage import TrainParams, _device, train
+
+
+class _Silent:
+    """Progress of the ranks that do not report."""
+
+    def advance(self, n: int = 1, **fields: object) -> None:
+        """Nothing to show."""
+
+    def close(self) -> None:
+        """Nothing to close."""
+
+    def __enter__(self) -> "_Silent":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        return None
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run one rank of the job named by ``argv[0]``; returns the exit status."""
+    args = sys.argv[1:] if argv is None else argv
+    job = json.loads(Path(args[0]).read_text())
+    rank, world = int(os.environ["RANK"]), int(os.environ["WORLD_SIZE"])
+    local_rank = int(os.environ.get("LOCAL_RANK", rank))
+    params = TrainParams(**job["params"])
+    device = _device(params.device)
+    if device.type == "cuda":
+        device = torch.device("cuda", local_rank)
+        torch.cuda.set_device(device)
+    logging.basicConfig(level=logging.INFO if rank == 0 else logging.WARNING, stream=sys.stderr,
+                        format=f"[rank {rank}/{world}] %(levelname)s %(message)s")
+    log = logging.getLogger(f"stage.{job['stage']}")
+    dist.init_process_group("nccl" if device.type == "cuda" else "gloo", timeout=timedelta(minutes=30))
+    try:
+        metrics: dict[str, float] = {}
+        factory = progress_factory(job["stage"], log, tty=False) if rank == 0 else (lambda total, unit: _Silent())
+        ctx = StageContext(stage=job["stage"], subject=job["subject"], params=params,
+                           inputs={k: Path(v) for k, v in job["inputs"].items()}, out=Path(job["out"]),
+                           extra_outputs={}, log=log, metrics=metrics, cache_dir=Path(job["cache_dir"]),
+                           shared_cache_dir=Path(job["shared_cache_dir"]), executor=LocalExecutor(workers=1),
+                           progress_factory=factory)
+        train(ctx, rank=rank, world_size=world, device=device)
+        if rank == 0:
+            Path(job["metrics"]).write_text(json.dumps(metrics))
+        dist.barrier()
+    finally:
+        dist.destroy_process_group()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
