@@ -398,7 +398,8 @@ def render_calibration_takes(cameras: Sequence[Camera], bars: Sequence[BarLight]
                              truth_dir: Path, params: CalibrationTakeParams,
                              board: CharucoBoardConfig = CharucoBoardConfig(),
                              spheres: MirrorSpheresConfig = MirrorSpheresConfig(),
-                             progress=None, board_cameras: Sequence[Camera] | None = None) -> None:
+                             progress=None, board_cameras: Sequence[Camera] | None = None,
+                             mirror_cameras: Sequence[Camera] | None = None) -> None:
     """Render the board and mirror-sphere takes for every camera into ``out_dir/calib``.
 
     Args:
@@ -413,7 +414,13 @@ def render_calibration_takes(cameras: Sequence[Camera], bars: Sequence[BarLight]
         board_cameras: the same cameras (same order) at the resolution the board take is shot at;
             a real studio calibrates at the sensor's native resolution whatever resolution the
             performance is later used at. Default: ``cameras``.
+        mirror_cameras: likewise for the mirror-sphere take. Default: ``cameras``. At native
+            resolution the bars are placed to a few millimetres (lightcal's ridge line fit)
+            but the take costs ~10x the CPU time.
     """
+    mirror_cameras = list(cameras) if mirror_cameras is None else list(mirror_cameras)
+    if [c.name for c in mirror_cameras] != [c.name for c in cameras]:
+        raise ValueError("mirror_cameras must be the same cameras as cameras, in the same order")
     board_cameras = list(cameras) if board_cameras is None else list(board_cameras)
     if [c.name for c in board_cameras] != [c.name for c in cameras]:
         raise ValueError("board_cameras must be the same cameras as cameras, in the same order")
@@ -456,7 +463,8 @@ def render_calibration_takes(cameras: Sequence[Camera], bars: Sequence[BarLight]
             progress.advance(1)
         mdir = calib / "mirror" / cam.name
         mdir.mkdir(parents=True, exist_ok=True)
-        for name, img in render_mirror_images(cam, sphere_centers, spheres, bars, params, cam_rng).items():
+        for name, img in render_mirror_images(mirror_cameras[ci], sphere_centers, spheres, bars, params,
+                                              cam_rng).items():
             write_exr(mdir / f"{name}.exr", img)
         if progress is not None:
             progress.advance(1)

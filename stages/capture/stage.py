@@ -74,6 +74,9 @@ class CaptureParams(StageParams):
     calibration_image_scale: float = Field(
         1.0, gt=0, le=2, description="Resolution of the ChArUco take, times the rig's reference resolution "
         "(1.0 = the sensors' native 768x1024, as a studio calibrates whatever image_scale the performance uses).")
+    calibration_mirror_scale: float | None = Field(
+        None, gt=0, le=2, description="Resolution of the mirror-sphere take, times the rig's reference resolution; "
+        "None = the performance's image_scale. 1.0 places the bars to a few mm but renders ~10x slower.")
     strip_camera: str = Field("cam00", description="Camera whose consecutive frames make strip.png.")
     strip_frames: int = Field(12, ge=1, description="Frames in strip.png.")
 
@@ -310,8 +313,13 @@ def _calibration_takes(ctx: StageContext, params: CaptureParams, cameras, truth:
                                         volume_center_m=tuple(rig.head_center_m))
     with ctx.progress(2 * len(cameras), "calibration takes") as progress:
         board_cameras = {c.name: c for c in rig.cameras_at(params.calibration_image_scale)}
+        mirror_cameras = None
+        if params.calibration_mirror_scale is not None:
+            by_name = {c.name: c for c in rig.cameras_at(params.calibration_mirror_scale)}
+            mirror_cameras = [by_name[c.name] for c in cameras]
         render_calibration_takes(cameras, bars, ctx.out, truth, take_params, board, spheres, progress=progress,
-                                 board_cameras=[board_cameras[c.name] for c in cameras])
+                                 board_cameras=[board_cameras[c.name] for c in cameras],
+                                 mirror_cameras=mirror_cameras)
 
 
 def _write_truth(truth: Path, rig: RigConfig, cameras, subject, performance, lit_per_pulse, streams,

@@ -25,7 +25,7 @@ def write_series(path: Path, title: str, x_label: str, y_label: str, points: Seq
 
 def _limit_label(c: Crossing, unit: str) -> str:
     if c.censored:
-        return f"no break up to {c.x:.3g}{unit}"
+        return f"holds to {c.x:.3g}{unit} (end of sweep)"
     if c.failed_at_start:
         return f"under threshold already at {c.x:.3g}{unit}"
     return f"breaks at {c.x:.3g}{unit}"
@@ -63,7 +63,7 @@ def expression_png(path: Path, scales: np.ndarray, psnr_db: np.ndarray, threshol
     fig, ax = plt.subplots(figsize=(6, 3.8))
     ax.plot(scales, psnr_db, "o-", ms=4)
     ax.axhline(threshold_db, color="k", ls="--", lw=1, label=f"threshold {threshold_db:.1f} dB")
-    ax.axvspan(min(scales), 1.0, color="#eeeeee", zorder=0)
+    ax.axvspan(min(scales), 1.0, color="#eeeeee", zorder=0, label="up to the captured magnitude")
     for c, side in ((low, "low"), (high, "high")):
         ax.axvline(c.x, color="#c0392b", lw=1.2, ls=":" if c.censored else "-",
                    label=f"{side}: {_limit_label(c, 'x')}")

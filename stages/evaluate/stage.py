@@ -263,6 +263,7 @@ def run(ctx: StageContext) -> None:
     expr_threshold = _threshold(params, expr_reference_db)
     low, high = scale_limits(scales, expr_psnr, expr_threshold)
 
+    samples["light_orbit_azimuth_limit_deg"] = azimuth.x
     _write_outputs(ctx, params, orbits, limit, light_threshold, centre, train_dirs, scales, expr_psnr,
                    expr_threshold, low, high, samples, strip_truth, strip_pred)
     m = ctx.metrics
@@ -298,6 +299,7 @@ def _write_outputs(ctx: StageContext, params: EvaluateParams, orbits: dict, limi
                          tuple(tuple(float(v) for v in d) for d in train_dirs))
     write_limits(out / LIMITS_FILE, limits, {
         "failed_at_start": limit.failed_at_start,
+        "light_orbit_azimuth_limit_deg": samples["light_orbit_azimuth_limit_deg"],
         "expression_scale_limit_low": low.x, "expression_scale_limit_high": high.x,
         "expression_scale_censored_low": low.censored, "expression_scale_censored_high": high.censored,
         "expression_threshold_db": expr_threshold})

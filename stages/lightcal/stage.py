@@ -45,6 +45,13 @@ class LightcalParams(StageParams):
     centre_from: Literal["ends", "midpoints"] = Field(
         "midpoints", description="Bar centre as the middle of its two triangulated ends, or the point nearest the "
         "mid-streak rays slid along the bar to the ends' middle.")
+    line_fit: Literal["auto", "off", "offset", "line"] = Field(
+        "auto", description="Refine the bar so that the rays reflected at points all along every streak's ridge "
+        "meet its line: 'offset' moves it across its axis, 'line' also tilts the axis, 'off' keeps the mid-streak "
+        "estimate; the centre along the bar stays the ends' middle. 'auto': 'offset' when the balls are at least "
+        "line_fit_min_ball_px in radius in the images (native resolution), else 'off' (short noisy ridges).")
+    line_fit_min_ball_px: float = Field(
+        50.0, gt=0, description="Median ball radius in pixels from which line_fit 'auto' refines the bar's line.")
     allow_missing_bars: bool = Field(
         False, description="Leave out (with a warning) bars that cannot be placed instead of failing.")
 
@@ -243,6 +250,15 @@ def _solve_bar(b: int, cams: dict[str, Camera], capture: Path, sil_of: dict[tupl
         if refined is not None:
             centre, axis, length, dist, weights = refined
             method = "streak ends"
+            mode = params.line_fit
+            if mode == "auto":
+                ball_px = float(np.median([sil.radius_px for sil in sil_of.values()]))
+                mode = "offset" if ball_px >= params.line_fit_min_ball_px else "off"
+            if mode != "off":
+                fitted = _fit_bar_line(rays, centre, axis, radius, mode == "line")
+                if fitted is not None:
+                    centre, axis, dist, weights = fitted
+                    method = "ridge line fit"
     info.update({"residual_mm": 1e3 * float(np.average(dist, weights=weights)), "elongated": elongated,
                  "rays_downweighted": int(np.sum(weights < 0.5)), "method": method})
     entry = {"id": b, "center_world": centre.tolist(), "axis_world": axis.tolist(), "length_m": length,
@@ -251,6 +267,61 @@ def _solve_bar(b: int, cams: dict[str, Camera], capture: Path, sil_of: dict[tupl
     log.info("bar %d: centre %s m from %d highlights, residual %.1f mm", b, np.round(centre, 4), len(rays),
              info["residual_mm"])
     return entry, info
+
+
+def _fit_bar_line(rays, centre: np.ndarray, axis: np.ndarray, radius: float, free_axis: bool):
+    """Least-squares bar line from the rays reflected at points along every highlight's ridge.
+
+    Each ridge point's reflected ray meets the bar's axis line somewhere along it; the mid-streak
+    rays alone meet it at different points, so the point nearest to them sits off the line
+    (across the bar, by centimetres for side bars). Here the line (2 offsets across it, 2 axis
+    tilts) minimises the ray-to-line distances (soft L1); the ridge spans most of the bar, which
+    pins the line's direction (a line along the ray bundle would not meet them all). The
+    centre keeps its position along the line. Returns (centre, axis, mid-ray distances, weights) or None.
+    """
+    from scipy.optimize import least_squares
+
+    from stages.lightcal.solve import ray_line_distances
+
+    origins, dirs = [], []
+    for _, _, hl, cam, ball in rays:
+        if hl.ridge_px is None or len(hl.ridge_px) < 3:
+            continue
+        for uv in hl.ridge_px:
+            hit = reflect_ray(cam, uv, ball, radius)
+            if hit is not None:
+                origins.append(hit[0])
+                dirs.append(hit[1])
+    if len(origins) < 12:
+        return None
+    o, d = np.stack(origins), np.stack(dirs)  # [M, 3]
+    # a frame around the current line: u, v across it
+    u = np.cross(axis, [1.0, 0.0, 0.0] if abs(axis[0]) < 0.9 else [0.0, 1.0, 0.0])
+    u /= np.linalg.norm(u)
+    v = np.cross(axis, u)
+
+    def line(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        if len(x) == 2:
+            return centre + x[0] * u + x[1] * v, axis
+        a = axis + x[2] * u + x[3] * v
+        return centre + x[0] * u + x[1] * v, a / np.linalg.norm(a)
+
+    def residual(x: np.ndarray) -> np.ndarray:
+        p, a = line(x)
+        return ray_line_distances(o, d, p, a)
+
+    n_free = 4 if free_axis else 2
+    fit = least_squares(residual, np.zeros(n_free), loss="soft_l1", f_scale=0.003, x_scale=0.01)
+    p, a = line(fit.x)
+    # keep the centre's place along the bar: the point of the new line nearest the old centre
+    p = p + ((centre - p) @ a) * a
+    if a[np.argmax(np.abs(a))] < 0:
+        a = -a
+    points = np.stack([r[0] for r in rays])
+    dirs_mid = np.stack([r[1] for r in rays])
+    dist = ray_line_distances(points, dirs_mid, p, a)
+    w = 1.0 / (1.0 + (dist / (2 * 1.4826 * max(float(np.median(dist)), 1e-6))) ** 2)
+    return p, a, dist, w
 
 
 def _refine_with_endpoints(rays, centre: np.ndarray, axis: np.ndarray, radius: float, centre_from: str):

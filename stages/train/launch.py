@@ -44,10 +44,22 @@ def _check_backend(device: str, processes: int) -> None:
         raise ConfigError("train.processes > 1 on CPU needs the gloo backend, which this torch build lacks")
 
 
+def _stop(proc: subprocess.Popen) -> None:
+    """Terminate the launcher (torchrun passes SIGTERM on to its ranks), then kill it if it lingers."""
+    proc.terminate()
+    try:
+        proc.wait(timeout=30)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
+
+
 def launch_ddp(ctx: StageContext) -> None:
     """Run the stage on ``ctx.params.processes`` ranks and fill ``ctx.metrics`` from rank 0."""
-    params = ctx.params
-    _check_backend(params.device, params.processes)  # type: ignore[attr-defined]
+    from stages.train.stage import TrainParams
+
+    params: TrainParams = ctx.params  # type: ignore[assignment]
+    _check_backend(params.device, params.processes)
     jobs = ctx.cache_dir / "ddp_jobs"
     jobs.mkdir(parents=True, exist_ok=True)
     job = jobs / f"{uuid.uuid4().hex}.json"
@@ -60,20 +72,23 @@ def launch_ddp(ctx: StageContext) -> None:
     env = dict(os.environ)
     env["PYTHONPATH"] = os.pathsep.join([str(PROJECT_ROOT)] + [p for p in env.get("PYTHONPATH", "").split(os.pathsep) if p])
     # torchrun sets OMP_NUM_THREADS=1 itself when unset; keep an explicit thread count.
-    if params.threads:  # type: ignore[attr-defined]
-        env["OMP_NUM_THREADS"] = str(params.threads)  # type: ignore[attr-defined]
-    cmd = torchrun_command(params.processes, job)  # type: ignore[attr-defined]
-    ctx.log.info("DDP training on %d processes: %s", params.processes, " ".join(cmd))  # type: ignore[attr-defined]
+    if params.threads:
+        env["OMP_NUM_THREADS"] = str(params.threads)
+    cmd = torchrun_command(params.processes, job)
+    ctx.log.info("DDP training on %d processes: %s", params.processes, " ".join(cmd))
     try:
         proc = subprocess.Popen(cmd, cwd=PROJECT_ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                                 text=True, bufsize=1)
-        assert proc.stdout is not None  # PIPE was requested
         tail: list[str] = []
-        for line in proc.stdout:
-            line = line.rstrip()
-            ctx.log.info("%s", line)
-            tail = (tail + [line])[-20:]
-        code = proc.wait()
+        try:
+            for line in proc.stdout or ():
+                line = line.rstrip()
+                ctx.log.info("%s", line)
+                tail = (tail + [line])[-20:]
+            code = proc.wait()
+        except BaseException:
+            _stop(proc)  # an interrupted stage must not leave its ranks training
+            raise
         if code != 0:
             raise PipelineError(f"train: the DDP job ({' '.join(cmd)}) exited with status {code}; its last lines:\n"
                                 + "\n".join(tail) + "\nrerun the stage to resume from its last checkpoint")

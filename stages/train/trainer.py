@@ -174,10 +174,9 @@ class ModelTrainer:
             from torch.nn.parallel import DistributedDataParallel
 
             dev = tensors.images.device
-            # TRAvatar* decodes through its light basis, which leaves some of the model's
-            # parameters out of the graph; ours uses every parameter each iteration.
-            self._loss_fn = DistributedDataParallel(_BatchLoss(self), device_ids=[dev] if dev.type == "cuda" else None,
-                                                    find_unused_parameters=renderer.kind != "ours")
+            # Both kinds use every parameter in every training iteration (unseen bars'
+            # intensities are rows of one indexed tensor), so DDP needs no unused-parameter search.
+            self._loss_fn = DistributedDataParallel(_BatchLoss(self), device_ids=[dev] if dev.type == "cuda" else None)
 
     # ---- checkpoints -------------------------------------------------------------------------
     def _snapshot(self) -> dict:

@@ -39,7 +39,31 @@ def loss_curve(capture: dict[str, Path], workdir: Path, steps: int, batch_size: 
                                   weights=trainer_mod.LossWeights(), seed=0, ckpt_path=workdir / f"c{world_size}.pt",
                                   checkpoint_every=100, spike_factor=10.0, log=log, rank=rank,
                                   world_size=world_size)
-    return [tr.step() for _ in range(steps)]
+    if world_size == 1:
+        torch.save(_half_batch_gradient(tr), workdir / "grad_halves.pt")
+    curve = [tr.step()]
+    torch.save(_flat_grad(model), workdir / f"grad_{world_size}_{rank}.pt")  # after DDP's all-reduce
+    return curve + [tr.step() for _ in range(steps - 1)]
+
+
+def _flat_grad(model: torch.nn.Module) -> torch.Tensor:
+    return torch.cat([p.grad.flatten() for p in model.parameters() if p.grad is not None])
+
+
+def _half_batch_gradient(tr) -> torch.Tensor:
+    """The mean of the gradients of the first batch's two halves (what two DDP ranks all-reduce), in one process."""
+    state = tr.gen.get_state()
+    frames, cams, pix = tr.sample_batch()
+    eps = torch.randn(tr.batch_size, tr.model.config.latent_dim, generator=tr.gen)
+    tr.gen.set_state(state)  # the real first step draws the same batch
+    tr.model.zero_grad(set_to_none=True)
+    half = tr.batch_size // 2
+    for share in (slice(0, half), slice(half, None)):
+        total, _ = tr.losses(frames[share], cams[share], pix[share], eps[share])
+        (0.5 * total).backward()
+    grad = _flat_grad(tr.model)
+    tr.model.zero_grad(set_to_none=True)
+    return grad
 
 
 def rank_main(rank: int, world_size: int, init_file: str, capture: dict[str, Path], workdir: Path, steps: int,

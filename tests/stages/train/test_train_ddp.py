@@ -51,10 +51,19 @@ def test_two_gloo_ranks_give_the_single_process_loss_curve(capture, tmp_path):
     ranks = [json.loads((tmp_path / f"rank{r}.json").read_text()) for r in range(2)]
     assert ranks[0] == ranks[1]  # the averaged terms: every rank sees the global batch's loss
     single = loss_curve(capture, tmp_path, steps, batch)
+    grad_ddp, grad_halves, grad_one = (torch.load(tmp_path / f"grad_{n}.pt") for n in ("2_0", "halves", "1_0"))
+    # DDP's step is exactly the mean of the two shares' gradients ...
+    assert float((grad_ddp - grad_halves).norm()) < 1e-5 * float(grad_one.norm())
+    # ... which is the whole batch's gradient up to the raymarcher's sensitivity to float
+    # rounding: its box gradients are piecewise (sample membership, voxel cells, opacity
+    # saturation), and the 1e-16 changes in the decoded boxes that batch-size-dependent BLAS
+    # blocking causes move them by ~1% (measured; with equal box values the sum is exact).
+    assert float((grad_ddp - grad_one).norm()) < 2e-2 * float(grad_one.norm())
     for key in ("loss", "pho", "geo", "mat"):
         ddp = np.array([t[key] for t in ranks[0]])
         one = np.array([t[key] for t in single])
-        np.testing.assert_allclose(ddp, one, rtol=1e-3, err_msg=key)
+        np.testing.assert_allclose(ddp[0], one[0], rtol=1e-5, err_msg=key)  # same model, same batch
+        np.testing.assert_allclose(ddp, one, rtol=5e-3, err_msg=key)
     # The curve moves (the comparison is not between two constant sequences).
     assert len({round(t["loss"], 6) for t in single}) == steps
 
