@@ -57,3 +57,19 @@ def test_killed_worker_items_are_retried(ray_executor: RayExecutor, tmp_path: Pa
 def test_application_errors_surface_unretried(ray_executor: RayExecutor) -> None:
     with pytest.raises(ValueError, match="bad item"):
         ray_executor.map(fails, [1, 2])
+
+
+@pytest.mark.slow
+def test_a_per_item_stage_gives_the_same_object_on_ray_and_local(tmp_path: Path) -> None:
+    """`pipeline run --executor ray` commits the very object the local process pool commits."""
+    import json
+
+    from pipeline_toy_support import ToyProject
+
+    digests = {}
+    for kind in ("local", "ray"):
+        toy = ToyProject(tmp_path / kind)
+        toy.cli("run", "-S", "alice", "--until", "double", "--workers", "2", "--executor", kind)
+        shown = json.loads(toy.cli("show", "-S", "alice", "double", "--json", "--full").stdout)
+        digests[kind] = Path(shown["path"]).name
+    assert digests["ray"] == digests["local"]
