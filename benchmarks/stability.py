@@ -93,16 +93,25 @@ def track_sweep() -> dict:
 
 # --- calibration -----------------------------------------------------------------------------------
 
-def calibration_sweep() -> dict:
-    """Calibration error sweeps (benchmarks.bench_calibration.main) and their crossings."""
+def calibration_sweep(reuse: bool = False) -> dict:
+    """Calibration error sweeps (benchmarks.bench_calibration.main) and their crossings.
+
+    ``reuse``: read the ``bench-results/calibration.json`` an earlier ``make bench`` wrote
+    instead of running the calibration benchmark again (it is the slowest sweep).
+    """
     from benchmarks import bench_calibration
 
-    bench_calibration.main()  # writes bench-results/calibration.json and calibration.png
+    if not (reuse and (OUT / "calibration.json").is_file()):
+        bench_calibration.main()  # writes bench-results/calibration.json and calibration.png
     data = json.loads((OUT / "calibration.json").read_text())
     result: dict = {"crossings": {}}
-    # Poses: walk from the most poses down; noise: from the least noise up.
-    for sweep, xs, reverse in (("poses", data["poses"], True), ("noise", data["noises"], False)):
+    # Poses: walk from the most poses down; noise: from the least noise up. The x values are
+    # bench_calibration's constants (its JSON's "poses" key holds the per-run results).
+    for sweep, xs, reverse in (("poses", bench_calibration.POSES, True), ("noise", bench_calibration.NOISES, False)):
         runs = data[sweep]
+        if len(runs) != len(xs):
+            raise ValueError(f"{OUT / 'calibration.json'}: {len(runs)} '{sweep}' runs for {len(xs)} settings; it comes "
+                             "from another version of bench_calibration, run without --reuse-calibration")
         order = list(range(len(xs)))[::-1] if reverse else list(range(len(xs)))
         for key, bound in CALIBRATION_TARGETS.items():
             values = [runs[i].get(key, float("nan")) for i in order]  # a failed calibration is NaN
@@ -288,11 +297,17 @@ def _unit(units: dict, key: str) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Run the named sweeps (default: all), print every crossing, write the JSON and charts."""
+    """Run the named sweeps (default: all), print every crossing, write the JSON and charts.
+
+    ``--reuse-calibration``: take the calibration sweep from an existing ``calibration.json``.
+    A sweep that fails is reported and the others still run (exit code 1).
+    """
     import torch
 
     torch.set_num_threads(1)
-    names = list(argv if argv is not None else sys.argv[1:]) or list(SWEEPS)
+    args = list(argv if argv is not None else sys.argv[1:])
+    reuse = "--reuse-calibration" in args
+    names = [a for a in args if a != "--reuse-calibration"] or list(SWEEPS)
     unknown = [n for n in names if n not in SWEEPS]
     if unknown:
         print(f"unknown sweep(s) {unknown}; known: {', '.join(SWEEPS)}", file=sys.stderr)
@@ -300,11 +315,17 @@ def main(argv: list[str] | None = None) -> int:
     OUT.mkdir(exist_ok=True)
     path = OUT / "stability.json"
     summary: dict = json.loads(path.read_text()) if path.is_file() else {}
+    failed: list[str] = []
     for name in names:
         fn, units = SWEEPS[name]
         print(f"\n=== stability: {name} ===", flush=True)
         start = time.perf_counter()
-        result = fn()
+        try:
+            result = fn(reuse) if name == "calibration" else fn()
+        except Exception as err:  # one broken sweep must not hide the others' crossings
+            failed.append(name)
+            print(f"  {name} FAILED: {type(err).__name__}: {err}", flush=True)
+            continue
         result["seconds"] = time.perf_counter() - start
         summary[name] = result
         for key, c in result["crossings"].items():
@@ -314,7 +335,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"  ({result['seconds']:.0f} s; timings noisy on a shared CPU)", flush=True)
         path.write_text(json.dumps(summary, indent=1) + "\n")
     print(f"\nwrote {path} and {OUT}/stability_*.png")
-    return 0
+    if failed:
+        print(f"failed sweeps: {', '.join(failed)}")
+    return 1 if failed else 0
 
 
 if __name__ == "__main__":
