@@ -104,7 +104,7 @@ def calibration_sweep(reuse: bool = False) -> dict:
     if not (reuse and (OUT / "calibration.json").is_file()):
         bench_calibration.main()  # writes bench-results/calibration.json and calibration.png
     data = json.loads((OUT / "calibration.json").read_text())
-    result: dict = {"crossings": {}}
+    result: dict = {"crossings": {}, "bench_seconds": data.get("seconds"), "reused": bool(reuse)}
     # Poses: walk from the most poses down; noise: from the least noise up. The x values are
     # bench_calibration's constants (its JSON's "poses" key holds the per-run results).
     for sweep, xs, reverse in (("poses", bench_calibration.POSES, True), ("noise", bench_calibration.NOISES, False)):
@@ -273,7 +273,7 @@ def _plot_blur(points: list[dict], crossings: dict) -> None:
     ax1.axhline(LANDMARK_SHIFT_MAX_PX, color="k", ls=":", lw=1, label=f"threshold {LANDMARK_SHIFT_MAX_PX:g} px")
     ax1.axvline(crossings["landmark_shift_px"]["x"], color="#c0392b", lw=1.2,
                 label=describe(crossings["landmark_shift_px"], " px"))
-    ax1.set_ylabel("landmark displacement from the sharp image (px, median)")
+    ax1.set_ylabel("landmark shift from sharp (px, median)")
     for ax in (ax0, ax1):
         ax.set_xlabel("horizontal motion blur (px, 240x320 image)")
         ax.grid(alpha=0.3)
@@ -330,6 +330,7 @@ def main(argv: list[str] | None = None) -> int:
         summary[name] = result
         for key, c in result["crossings"].items():
             summary[f"{name}_{key}_limit"] = c["x"]  # the report shows top-level scalars
+            summary[f"{name}_{key}_censored"] = int(c["censored"])  # 1: never crossed, the limit is a bound
             print(f"  {name:<12} {key:<32} threshold {c['threshold']:<6g} {describe(c, _unit(units, key))}", flush=True)
         summary[f"{name}_seconds"] = result["seconds"]
         print(f"  ({result['seconds']:.0f} s; timings noisy on a shared CPU)", flush=True)

@@ -32,7 +32,7 @@ from stages.report.targets import TARGETS
 STAGE_EVALS: tuple[tuple[str, str | None], ...] = (
     ("sequence", None), ("capture", "capture_eval"), ("calibrate", "calibrate_eval"), ("lightcal", "lightcal_eval"),
     ("track", "track_eval"), ("stabilize", "stabilize_eval"), ("matte", "matte_eval"),
-    ("train", None), ("relight", "relight_eval"),
+    ("train", None), ("relight", "relight_eval"), ("evaluate", None),
 )
 SPLITS = (("novel_light", "novel light"), ("novel_perf", "novel performance"), ("novel_both", "both"))
 MEASURES = (("psnr", "PSNR (dB)"), ("mae", "MAE"), ("ssim", "SSIM"), ("lpips", "LPIPS"))
