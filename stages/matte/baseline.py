@@ -14,7 +14,7 @@ import cv2
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from stages.matte.inputs import luminance, srgb_encode
+from scene.colour import luminance, srgb_encode
 
 
 class BaselineConfig(BaseModel):

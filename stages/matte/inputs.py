@@ -23,23 +23,12 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-LUMA = np.array([0.2126, 0.7152, 0.0722], dtype=np.float32)
-
-
-def luminance(image: np.ndarray) -> np.ndarray:
-    """Rec. 709 luminance of a linear RGB image [H, W, 3] -> [H, W]."""
-    return image[..., :3] @ LUMA
+from scene.colour import luminance, srgb_encode
 
 
 def bright_level(image: np.ndarray, percentile: float = 99.0) -> float:
     """The ``percentile`` of the image's luminance (a robust 'white' of the exposure)."""
     return float(np.percentile(luminance(image), percentile))
-
-
-def srgb_encode(linear: np.ndarray) -> np.ndarray:
-    """The sRGB transfer curve of values clipped to [0, 1]."""
-    x = np.clip(linear, 0.0, 1.0)
-    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1.0 / 2.4) - 0.055).astype(np.float32)
 
 
 def normalise(image: np.ndarray, scale: float) -> np.ndarray:
