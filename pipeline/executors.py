@@ -14,8 +14,8 @@ import multiprocessing
 import os
 import pickle
 from abc import ABC, abstractmethod
-from concurrent.futures import FIRST_EXCEPTION, Future, ProcessPoolExecutor, wait
-from typing import Any, Callable, Sequence, TypeVar
+from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from typing import Any, Callable, Iterator, Sequence, TypeVar
 
 from pipeline.errors import ConfigError, PipelineError
 from pipeline.progress import ProgressLine
@@ -29,6 +29,19 @@ def _apply_chunk(fn: Callable[[Any], Any], chunk: Sequence[Any]) -> list[Any]:
     return [fn(item) for item in chunk]
 
 
+def chunk_bounds(n_items: int, n_chunks: int) -> list[int]:
+    """Start positions of ``n_chunks`` contiguous, near-equal chunks of ``n_items``, plus the end."""
+    return [round(i * n_items / n_chunks) for i in range(n_chunks + 1)]
+
+
+def ordered(pairs: Iterator[tuple[int, R]], n_items: int) -> list[R]:
+    """The results of an ``imap`` stream, in input order."""
+    results: list[Any] = [None] * n_items
+    for position, value in pairs:
+        results[position] = value
+    return results
+
+
 class BaseExecutor(ABC):
     """What the runner hands stages as ``ctx.executor``; a context manager owning its workers."""
 
@@ -39,6 +52,16 @@ class BaseExecutor(ABC):
     @abstractmethod
     def map(self, fn: Callable[[T], R], items: Sequence[T], *, desc: str = "items", gpu: bool = False) -> list[R]:
         """Apply a picklable top-level ``fn`` to every item; results in input order."""
+
+    def imap(self, fn: Callable[[T], R], items: Sequence[T], *, desc: str = "items",
+             gpu: bool = False) -> Iterator[tuple[int, R]]:
+        """``(position, fn(item))`` pairs as items finish, in any order; the work is handed out at the call.
+
+        Lets a caller store or write each result as soon as it exists (a failure later in the
+        run then loses nothing already done) and keeps only a few results in memory. Closing
+        the iterator early cancels what has not started. This default runs ``map`` first.
+        """
+        return iter(enumerate(self.map(fn, items, desc=desc, gpu=gpu)))
 
     def close(self) -> None:
         """Release workers (idempotent)."""
@@ -73,42 +96,54 @@ class LocalExecutor(BaseExecutor):
     def map(self, fn: Callable[[T], R], items: Sequence[T], *, desc: str = "items", gpu: bool = False) -> list[R]:
         """Apply ``fn`` to every item on the pool (in chunks); results in input order."""
         items = list(items)
+        return ordered(self.imap(fn, items, desc=desc, gpu=gpu), len(items))
+
+    def imap(self, fn: Callable[[T], R], items: Sequence[T], *, desc: str = "items",
+             gpu: bool = False) -> Iterator[tuple[int, R]]:
+        """``(position, result)`` as chunks finish (each item as it finishes when run in this process)."""
+        items = list(items)
+        if gpu or self.workers == 1 or len(items) <= 1:
+            return self._serial(fn, items, desc)
+        try:
+            pickle.dumps(fn)
+        except (pickle.PicklingError, AttributeError, TypeError) as err:
+            raise PipelineError(f"executor.map({getattr(fn, '__qualname__', fn)!r}): the function must "
+                                f"be a top-level function of an importable module so worker "
+                                f"processes can import it ({err})") from None
+        n_chunks = min(len(items), self.workers * 4)
+        bounds = chunk_bounds(len(items), n_chunks)
+        pool = self._get_pool()
+        futures: dict[Future, int] = {pool.submit(_apply_chunk, fn, items[bounds[i]:bounds[i + 1]]): i
+                                      for i in range(n_chunks)}
+        return self._drain(futures, bounds, desc)
+
+    def _serial(self, fn: Callable[[T], R], items: list[T], desc: str) -> Iterator[tuple[int, R]]:
         progress = self._progress(len(items), desc)
         try:
-            if gpu or self.workers == 1 or len(items) <= 1:
-                results = []
-                for item in items:
-                    results.append(fn(item))
-                    if progress:
-                        progress.advance()
-                return results
-            try:
-                pickle.dumps(fn)
-            except (pickle.PicklingError, AttributeError, TypeError) as err:
-                raise PipelineError(f"executor.map({getattr(fn, '__qualname__', fn)!r}): the function must "
-                                    f"be a top-level function of an importable module so worker "
-                                    f"processes can import it ({err})") from None
-            n_chunks = min(len(items), self.workers * 4)
-            bounds = [round(i * len(items) / n_chunks) for i in range(n_chunks + 1)]
-            chunks = [items[bounds[i]:bounds[i + 1]] for i in range(n_chunks)]
-            pool = self._get_pool()
-            futures: dict[Future, int] = {pool.submit(_apply_chunk, fn, chunk): i for i, chunk in enumerate(chunks)}
-            results_by_chunk: dict[int, list[R]] = {}
-            pending = set(futures)
-            while pending:
-                done, pending = wait(pending, return_when=FIRST_EXCEPTION)
-                for future in done:
-                    index = futures[future]
-                    error = future.exception()
-                    if error is not None:
-                        for other in pending:
-                            other.cancel()
-                        raise error
-                    results_by_chunk[index] = future.result()
-                    if progress:
-                        progress.advance(len(chunks[index]))
-            return [r for i in range(n_chunks) for r in results_by_chunk[i]]
+            for position, item in enumerate(items):
+                yield position, fn(item)
+                if progress:
+                    progress.advance()
         finally:
+            if progress:
+                progress.close()
+
+    def _drain(self, futures: dict[Future, int], bounds: list[int], desc: str) -> Iterator[tuple[int, Any]]:
+        progress = self._progress(bounds[-1], desc)
+        pending = set(futures)
+        try:
+            while pending:
+                done, pending = wait(pending, return_when=FIRST_COMPLETED)
+                for future in sorted(done, key=futures.__getitem__):
+                    index = futures[future]
+                    chunk_results = future.result()  # re-raises the worker's exception
+                    if progress:
+                        progress.advance(len(chunk_results))
+                    for offset, value in enumerate(chunk_results):
+                        yield bounds[index] + offset, value
+        finally:
+            for other in pending:  # an error, or the caller stopped early: start nothing new
+                other.cancel()
             if progress:
                 progress.close()
 

@@ -13,10 +13,10 @@ from __future__ import annotations
 
 import os
 import sys
-from typing import Any, Callable, Sequence, TypeVar
+from typing import Any, Callable, Iterator, Sequence, TypeVar
 
 from pipeline.errors import ConfigError, PipelineError
-from pipeline.executors import BaseExecutor, ProgressFactory
+from pipeline.executors import BaseExecutor, ProgressFactory, chunk_bounds, ordered
 
 T = TypeVar("T")
 R = TypeVar("R")
@@ -66,20 +66,29 @@ class RayExecutor(BaseExecutor):
         return max(1, int(self._ray.cluster_resources().get("CPU", self.workers)))
 
     def map(self, fn: Callable[[T], R], items: Sequence[T], *, desc: str = "items", gpu: bool = False) -> list[R]:
+        """Apply ``fn`` to every item as Ray tasks (in chunks); results in input order."""
+        items = list(items)
+        return ordered(self.imap(fn, items, desc=desc, gpu=gpu), len(items))
+
+    def imap(self, fn: Callable[[T], R], items: Sequence[T], *, desc: str = "items",
+             gpu: bool = False) -> Iterator[tuple[int, R]]:
+        """``(position, result)`` as chunks finish; every chunk is submitted at the call."""
         items = list(items)
         if not items:
-            return []
+            return iter(())
         n_chunks = min(len(items), self.cluster_cpus() * self.chunks_per_worker)
-        bounds = [round(i * len(items) / n_chunks) for i in range(n_chunks + 1)]
-        chunks = [items[bounds[i]:bounds[i + 1]] for i in range(n_chunks)]
+        bounds = chunk_bounds(len(items), n_chunks)
         options: dict[str, Any] = {"max_retries": self.max_retries, "retry_exceptions": False}
         if gpu:
             options["num_gpus"] = 1
         fn_ref = self._ray.put(fn)
-        refs = [self._remote_apply.options(**options).remote(fn_ref, chunk) for chunk in chunks]
+        refs = [self._remote_apply.options(**options).remote(fn_ref, items[bounds[i]:bounds[i + 1]])
+                for i in range(n_chunks)]
+        return self._drain(refs, bounds, desc)
+
+    def _drain(self, refs: list[Any], bounds: list[int], desc: str) -> Iterator[tuple[int, Any]]:
         index_of = {ref: i for i, ref in enumerate(refs)}
-        results: dict[int, list[R]] = {}
-        progress = self._progress(len(items), desc)
+        progress = self._progress(bounds[-1], desc)
         pending = list(refs)
         try:
             while pending:
@@ -87,21 +96,21 @@ class RayExecutor(BaseExecutor):
                 for ref in done:
                     i = index_of[ref]
                     try:
-                        results[i] = self._ray.get(ref)
+                        chunk_results = self._ray.get(ref)
                     except self._ray.exceptions.RayTaskError as err:
-                        for other in pending:
-                            self._ray.cancel(other)
-                        cause = err.as_instanceof_cause()
-                        raise cause from None
+                        raise err.as_instanceof_cause() from None
                     except self._ray.exceptions.WorkerCrashedError as err:
                         raise PipelineError(f"ray: a worker died {self.max_retries + 1} times on {desc} "
                                             f"{bounds[i]}..{bounds[i + 1] - 1}: {err}") from None
                     if progress:
-                        progress.advance(len(chunks[i]))
+                        progress.advance(len(chunk_results))
+                    for offset, value in enumerate(chunk_results):
+                        yield bounds[i] + offset, value
         finally:
+            for other in pending:  # an error, or the caller stopped early
+                self._ray.cancel(other)
             if progress:
                 progress.close()
-        return [r for i in range(n_chunks) for r in results[i]]
 
     def close(self) -> None:
         if self._started_here and self._ray.is_initialized():

@@ -15,6 +15,10 @@ Ground truth (``capture.truth``, evaluation stages only): ``cameras.json``, ``ba
 Frames are labelled (light per frame, dropped/repeated frames) from the controller log and
 the images' brightness by ``stages.capture.labelling``; the virtual studio never tells the
 labeller what it knows.
+
+The virtual studio renders trigger pulses through ``ctx.executor``, one cached item per pulse
+(``stages.capture.virtual``, ``pipeline.itemcache``): a longer take renders only its new pulses
+(metrics ``render_pulses_reused``, ``render_pulses_computed``), the rest are copied byte for byte.
 """
 
 from __future__ import annotations
@@ -131,7 +135,8 @@ def _split_takes(n: int, takes: tuple[str, ...], cycle: int) -> list[int]:
 def _virtual_capture(ctx: StageContext, params: CaptureParams) -> dict:
     from hardware.led import Faults, run_emulated_session
     from hardware.studio import RenderSettings, make_performance, make_subject, scan_session
-    from stages.capture.virtual import RenderTask, render_task
+    from pipeline.itemcache import stage_item_cache
+    from stages.capture.virtual import RENDER_CODE, RenderTask, place_pulse, pulse_key, render_task
 
     rig = params.rig
     seq_path = ctx.input("sequence") / "sequence.json"
@@ -166,19 +171,29 @@ def _virtual_capture(ctx: StageContext, params: CaptureParams) -> dict:
                               shot_noise_gain=params.shot_noise_gain, read_noise=params.read_noise,
                               seed=params.noise_seed)
     truth = ctx.extra_outputs["truth"]
-    arrivals = [[tuple(k for k, i in enumerate(stream) if i == index) for stream in streams]
-                for index in range(n_frames)]  # [F][C] arrival indices of each trigger per camera
+    arrivals: list[list[tuple[int, ...]]] = [[() for _ in streams] for _ in range(n_frames)]
+    for c, stream in enumerate(streams):  # [F][C] arrival indices of each trigger per camera
+        for k, index in enumerate(stream):
+            arrivals[index][c] += (k,)
+    pulses = [i for i in range(n_frames) if any(arrivals[i])]
     tasks = [RenderTask(rig=rig, subject_name=ctx.subject, identity_seed=params.identity_seed,
-                        texture_size=params.texture_size, settings=settings, cameras=tuple(cameras),
-                        frame=performance[i], light=session.lit_per_pulse[i], received=tuple(arrivals[i]),
-                        received_dir=ctx.out / "_received", matte_dir=truth / "mattes", half=params.half_float)
-             for i in range(n_frames) if any(arrivals[i])]
+                        texture_size=params.texture_size, settings=settings,
+                        cameras=tuple(cam for cam, got in zip(cameras, arrivals[i]) if got),
+                        frame=performance[i], light=session.lit_per_pulse[i], half=params.half_float)
+             for i in pulses]
+    arrivals_of = [{cam.name: got for cam, got in zip(cameras, arrivals[i]) if got} for i in pulses]
     ctx.log.info("filming %d trigger pulses x %d cameras at %dx%d (%d images lost by the cameras, "
                  "%d pulses missed by the controller)", n_frames, len(cameras), cameras[0].width,
                  cameras[0].height, n_frames * len(cameras) - sum(len(set(s)) for s in streams),
                  len(params.controller_missed_pulses))
     render_start = time.perf_counter()
-    results = ctx.executor.map(render_task, tasks, desc="frames")
+    # One cache entry per pulse: frames added to a take render alone, the rest come from the cache.
+    cache = stage_item_cache(ctx, RENDER_CODE)
+    results = cache.map(ctx.executor, render_task, tasks, pulse_key, desc="frames",
+                        consume=lambda k, rendered: place_pulse(rendered, arrivals_of[k], ctx.out / "_received",
+                                                                truth / "mattes", cam_names))
+    cache.report(ctx, "frames", metrics_prefix="render_pulses")
+    rendered_now = [results[k] for k in cache.computed]
     render_s = time.perf_counter() - render_start
     bright_of = {r["index"]: r["brightness"] for r in results}
     brightness = [[bright_of[i][c] for i in stream] for c, stream in enumerate(streams)]  # C x [R_c]
@@ -209,7 +224,8 @@ def _virtual_capture(ctx: StageContext, params: CaptureParams) -> dict:
         **label_metrics, "lost_images": lost_images,
         "render_seconds": render_s,
         "rays_per_second": total_rays / max(sum(r["seconds"] for r in results), 1e-9),
-        "images_per_second": sum(r["images"] for r in results) / max(render_s, 1e-9),
+        # Images rendered by this run (pulses reused from the per-item cache took no time now).
+        "images_per_second": sum(r["images"] for r in rendered_now) / max(render_s, 1e-9),
         "image_width_px": cameras[0].width, "image_height_px": cameras[0].height,
         "controller_log_entries": len(log_json),
     }}

@@ -5,42 +5,68 @@ the studio renders that light for every camera. Frames listed in ``drop_frames``
 by the cameras (no image arrives), as a real rig drops frames; the received images are
 written in arrival order and labelled afterwards from the controller log and their
 brightness, exactly as a real capture is.
+
+Every pulse is one per-item cache entry (``pipeline.itemcache``): ``render_task`` returns the
+encoded files (EXR and true-matte PNG bytes, exactly what is written) and ``pulse_key``
+digests all they depend on (rig, subject, render settings, the cameras that receive the
+pulse, the subject's state at that frame, the light). A longer take or more frames therefore
+renders only the new pulses; the others are copied from the cache byte for byte.
 """
 
 from __future__ import annotations
 
 import os
+import tempfile
 import time
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
 
 from hardware.studio import FrameState, RenderSettings, VirtualStudio, make_subject
+from pipeline.itemcache import content_key
 from scene.camera import Camera
 from scene.colour import luminance
 from scene.image_io import write_exr, write_png16
 from scene.rig import RigConfig
+
+# What a rendered pulse depends on besides this module (its cache entries' code version).
+RENDER_CODE = ("scene.camera", "scene.rig", "scene.lights", "scene.face_rig", "scene.image_io", "scene.colour",
+               "hardware.studio.renderer", "hardware.studio.subject")
 
 _STUDIO_CACHE: dict[tuple, VirtualStudio] = {}
 
 
 @dataclass(frozen=True)
 class RenderTask:
-    """One trigger pulse to film with every camera (picklable, for ``ctx.executor.map``)."""
+    """One trigger pulse to film with the cameras that receive it (picklable, for the executor)."""
 
     rig: RigConfig
     subject_name: str
     identity_seed: int
     texture_size: int
     settings: RenderSettings
-    cameras: tuple[Camera, ...]
+    cameras: tuple[Camera, ...]  # the cameras that receive this pulse (a lost image is not rendered)
     frame: FrameState
     light: str | int | None  # what the bars showed: "F", a bar id, None = dark
-    received: tuple[tuple[int, ...], ...]  # per camera: arrival indices of this frame (empty = lost)
-    received_dir: Path  # images go to <received_dir>/<cam>/<k:06d>.exr
-    matte_dir: Path  # true mattes go to <matte_dir>/<cam>/<index:06d>.png
     half: bool
+
+
+def pulse_key(task: RenderTask) -> str:
+    """Content digest of everything a pulse's images depend on (the renderer's code aside)."""
+    frame = task.frame
+    return content_key({
+        "rig": task.rig.model_dump(mode="json"),
+        "subject": [task.subject_name, task.identity_seed, task.texture_size],
+        "settings": asdict(task.settings),
+        "cameras": [cam.to_dict() for cam in task.cameras],
+        "frame": {"index": frame.index, "take": frame.take, "time_s": frame.time_s,
+                  "expression_weights": np.asarray(frame.expression_weights).tolist(),
+                  "world_from_head_R": np.asarray(frame.world_from_head.R).tolist(),
+                  "world_from_head_t": np.asarray(frame.world_from_head.t).tolist()},
+        "light": task.light,
+        "half": task.half,
+    })
 
 
 def _studio(task: RenderTask) -> VirtualStudio:
@@ -52,38 +78,60 @@ def _studio(task: RenderTask) -> VirtualStudio:
     return _STUDIO_CACHE[key]
 
 
-def render_task(task: RenderTask) -> dict:
-    """Render one pulse for every camera that receives it; write its EXRs and true mattes.
+def _encoded(write, suffix: str, *args) -> np.ndarray:
+    """The bytes ``write(path, *args)`` puts in a file, as a uint8 array (so cached files are byte-exact)."""
+    handle, name = tempfile.mkstemp(suffix=suffix)
+    os.close(handle)
+    try:
+        write(name, *args)
+        return np.frombuffer(Path(name).read_bytes(), np.uint8)
+    finally:
+        os.unlink(name)
 
-    A camera that delivers the frame twice (a repeat) gets a hard link under the second
-    arrival index. Returns ``{"index", "brightness": [C] mean luminance per camera (nan when
-    lost), "rays", "images", "seconds"}``.
+
+def render_task(task: RenderTask) -> dict:
+    """Render one pulse for every camera of the task; returns the files to write.
+
+    Returns ``{"index", "cameras": [C'] names, "exr": [C'] EXR file bytes (uint8), "matte_png":
+    [C'] true-matte PNG bytes, "brightness": [C'] mean luminance, "rays", "images", "seconds"}``.
     """
     start = time.perf_counter()
     studio = _studio(task)
+    lit = [] if task.light is None else task.light
     rays = 0
-    images = 0
-    brightness = []
-    for cam, arrivals in zip(task.cameras, task.received):
-        if not arrivals:
-            brightness.append(float("nan"))
-            continue
-        lit = [] if task.light is None else task.light
+    exr, mattes, brightness = [], [], []
+    for cam in task.cameras:
         result = studio.render(task.frame, cam, lit)
         rays += result.rays
-        images += 1
-        cam_dir = task.received_dir / cam.name
-        cam_dir.mkdir(parents=True, exist_ok=True)
-        first = cam_dir / f"{arrivals[0]:06d}.exr"
-        write_exr(first, result.rgb, half=task.half)
-        for k in arrivals[1:]:
-            os.link(first, cam_dir / f"{k:06d}.exr")
-        matte_dir = task.matte_dir / cam.name
-        matte_dir.mkdir(parents=True, exist_ok=True)
-        write_png16(matte_dir / f"{task.frame.index:06d}.png", result.alpha)
+        exr.append(_encoded(write_exr, ".exr", result.rgb, task.half))
+        mattes.append(_encoded(write_png16, ".png", result.alpha))
         brightness.append(float(luminance(result.rgb).mean()))
-    return {"index": task.frame.index, "brightness": brightness, "rays": rays, "images": images,
+    return {"index": task.frame.index, "cameras": [cam.name for cam in task.cameras], "exr": exr,
+            "matte_png": mattes, "brightness": brightness, "rays": rays, "images": len(task.cameras),
             "seconds": time.perf_counter() - start}
+
+
+def place_pulse(result: dict, arrivals: dict[str, tuple[int, ...]], received_dir: Path, matte_dir: Path,
+                camera_names: list[str]) -> dict:
+    """Write a rendered pulse: ``<received_dir>/<cam>/<k:06d>.exr`` per arrival, true mattes.
+
+    A camera that delivers the frame twice (a repeat) gets a hard link under the second
+    arrival index. Returns the pulse's summary ``{"index", "brightness": [C] (nan when lost),
+    "rays", "images", "seconds"}``.
+    """
+    index = int(result["index"])
+    bright_of = dict(zip(result["cameras"], result["brightness"]))
+    for name, exr, png in zip(result["cameras"], result["exr"], result["matte_png"]):
+        cam_dir = received_dir / name
+        cam_dir.mkdir(parents=True, exist_ok=True)
+        first = cam_dir / f"{arrivals[name][0]:06d}.exr"
+        first.write_bytes(np.asarray(exr, np.uint8).tobytes())
+        for k in arrivals[name][1:]:
+            os.link(first, cam_dir / f"{k:06d}.exr")
+        (matte_dir / name).mkdir(parents=True, exist_ok=True)
+        (matte_dir / name / f"{index:06d}.png").write_bytes(np.asarray(png, np.uint8).tobytes())
+    return {"index": index, "brightness": [float(bright_of.get(name, float("nan"))) for name in camera_names],
+            "rays": int(result["rays"]), "images": int(result["images"]), "seconds": float(result["seconds"])}
 
 
 def frame_state_arrays(frames: list[FrameState]) -> dict[str, np.ndarray]:

@@ -7,8 +7,19 @@ Steps:
    the workspace root's shared cache (``stages.matte.model_cache``, keyed by a hash of the
    training params, the image scale and the code), so every subject reuses it.
 2. SOC adaptation (MODNet's sub-objectives consistency) on unlabelled frames of this capture.
-3. Batched inference over every image (fused matte gated by the semantic branch,
-   ``stages.matte.inference``), written as 16-bit PNG mattes.
+3. Inference over every image (fused matte gated by the semantic branch,
+   ``stages.matte.inference``), written as 16-bit PNG mattes. Each image is one item fanned
+   out through ``ctx.executor`` (``gpu=True`` on CUDA) and cached per image in the stage's
+   ``cache_dir``, keyed by the adapted model's weights digest, the image's and its guide's
+   bytes and the inference settings: a rerun mattes only the images whose key is new.
+
+Adding frames to a capture: the supervised model does not depend on this capture (other
+subjects), but two things do: SOC adaptation samples frames of this capture, and each
+camera's exposure reference is the median over its F frames. With ``statistics_frames``
+unset both see every frame, so new frames change the adapted weights (and the references)
+and every image is matted again. With ``statistics_frames: N`` both use only the first N
+frames, so frames appended later leave the model and the references unchanged and only the
+new images are matted.
 
 OLAT frames: the unlit side of the head is black, so the image alone cannot say where the
 head ends there. Every image goes to the network together with the nearest full-on (F)
@@ -26,9 +37,11 @@ Output::
     mattes/<cam>/<index:06d>.png   16-bit alpha, one per received image
     contact_sheet.png              mattes of a few frames from every camera (F and OLAT)
     model.json                     which cached model was used, training and SOC records
-    metrics.json                   images_per_second (EXR read + network + PNG write, all images),
+    metrics.json                   images_per_second (EXR read + network, images matted by this run;
+                                   from the cached per-image times when every image was reused),
                                    training_seconds (0 when the model came from the cache),
-                                   model_cached, soc_seconds, images, inference_seconds
+                                   model_cached, soc_seconds, images, inference_seconds,
+                                   images_reused, images_computed (per-image cache)
 """
 
 from __future__ import annotations
@@ -45,13 +58,12 @@ from pydantic import Field
 
 from pipeline.errors import InputError
 from pipeline.stage import Stage, StageContext, StageParams
-from stages.matte.baseline import BaselineConfig, baseline_matte
+from stages.matte.baseline import BaselineConfig
 from stages.matte.contact_sheet import write_contact_sheet
 from stages.matte.inputs import (bright_level, camera_reference, is_full_on, nearest_full_on, network_input,
                                  olat_scale)
 from stages.matte.model_cache import cache_key, load_or_train, source_digest
 from stages.matte.studio_data import StudioDataConfig, collect, identity_jobs, render_identity
-from stages.matte.inference import predict
 from stages.matte.training import InputConfig, SocConfig, TrainConfig, soc_adapt, train_supervised
 
 MATTE_DIR = Path(__file__).resolve().parent
@@ -67,11 +79,14 @@ class MatteParams(StageParams):
     soc: SocConfig = Field(SocConfig(), description="SOC adaptation on unlabelled frames of this capture.")
     soc_frames: int = Field(32, ge=0, description="Unlabelled frames (spread over cameras and lights) used by SOC.")
     baseline: BaselineConfig = Field(BaselineConfig(), description="The classical matte (method 'baseline').")
-    batch_size: int = Field(8, ge=1, description="Images per inference batch.")
     gate_low: float = Field(0.3, ge=0, lt=1, description="Semantic gate: matte forced to 0 where the dilated semantic foreground is below this (0 = no gate).")
     gate_high: float = Field(0.6, gt=0, le=1, description="Semantic gate: matte kept as is where the dilated semantic foreground is above this.")
     device: Literal["auto", "cpu", "cuda"] = Field("auto", description="Torch device; 'auto' uses CUDA when present.")
     contact_sheet_frames: int = Field(4, ge=1, description="Frames (rows) shown in the contact sheet.")
+    statistics_frames: int | None = Field(
+        None, ge=1, description="Only frames with index below this set the cameras' exposure references and "
+        "feed SOC adaptation (None = every frame). Set it so that frames appended to a capture later leave the "
+        "adapted model unchanged and only the new images are matted again (per-image cache).")
     threads: int = Field(0, ge=0, description="torch CPU threads (0 = torch's default); 1 avoids thread "
                          "thrashing on a small, shared CPU.")
 
@@ -138,16 +153,26 @@ def usable_frames(manifest: dict[str, Any], reader: FrameReader) -> list[dict[st
 
 
 class CameraInputs:
-    """Builds network inputs for one camera's frames (exposure reference from its F frames)."""
+    """Builds network inputs for one camera's frames (exposure reference from its F frames).
 
-    def __init__(self, manifest: dict[str, Any], capture: Path, cam: str, inputs: InputConfig) -> None:
+    ``statistics_frames``: only F frames with an index below it set the reference (None = all).
+    """
+
+    def __init__(self, manifest: dict[str, Any], capture: Path, cam: str, inputs: InputConfig,
+                 statistics_frames: int | None = None) -> None:
         self.reader = FrameReader(capture, cam)
         self.frames = usable_frames(manifest, self.reader)
         self.light = {int(f["index"]): f.get("light") for f in self.frames}
         self.guides = nearest_full_on(self.frames)
-        levels = [bright_level(self.reader.read(int(f["index"]))) for f in self.frames if is_full_on(f)]
+        self.statistics_frames = statistics_frames
+        levels = [bright_level(self.reader.read(int(f["index"]))) for f in self.statistics_pool() if is_full_on(f)]
         self.reference = camera_reference(levels, inputs.exposure_floor)
         self.config = inputs
+
+    def statistics_pool(self) -> list[dict[str, Any]]:
+        """The frames that set this camera's reference and may feed SOC."""
+        limit = self.statistics_frames
+        return [f for f in self.frames if limit is None or int(f["index"]) < limit]
 
     def network_input(self, index: int) -> np.ndarray:
         """[6, H, W] input of frame ``index``."""
@@ -189,7 +214,7 @@ def trained_model(ctx: StageContext, params: MatteParams, image_scale: float, de
 
 def soc_inputs(cameras: dict[str, CameraInputs], count: int, seed: int) -> np.ndarray:
     """Network inputs [N, 6, H, W] of ``count`` frames spread over cameras, F and OLAT alike."""
-    pairs = [(cam, int(f["index"])) for cam, ci in cameras.items() for f in ci.frames]
+    pairs = [(cam, int(f["index"])) for cam, ci in cameras.items() for f in ci.statistics_pool()]
     if count == 0 or not pairs:
         return np.zeros((0, 6, 1, 1), np.float32)
     rng = np.random.default_rng(seed)
@@ -197,9 +222,58 @@ def soc_inputs(cameras: dict[str, CameraInputs], count: int, seed: int) -> np.nd
     return np.stack([cameras[pairs[i][0]].network_input(pairs[i][1]) for i in sorted(picks)])
 
 
+def adapted_model_dir(ctx: StageContext, model: Any) -> tuple[Path, str]:
+    """Save the SOC-adapted model for the inference workers; returns (folder, weights digest).
+
+    The folder is named by the digest of the weights, in the stage's cache (reused by a
+    rerun that adapts to the same weights), written through a temporary sibling and renamed.
+    """
+    import shutil
+    import tempfile
+
+    from pipeline.hashing import hash_file
+    from stages.matte.model_cache import MODEL_FILE, save_model
+
+    root = ctx.cache_dir / "adapted_models"
+    root.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=".adapted.", dir=root))
+    save_model(staging, model, {})
+    digest = hash_file(staging / MODEL_FILE)
+    folder = root / digest
+    if folder.is_dir():
+        shutil.rmtree(staging, ignore_errors=True)
+    else:
+        try:
+            staging.rename(folder)
+        except OSError:  # stored meanwhile by another run
+            shutil.rmtree(staging, ignore_errors=True)
+    return folder, digest
+
+
+def inference_items(cameras: dict[str, CameraInputs], params: MatteParams, device: str,
+                    model_dir: Path | None, model_digest: str) -> list[tuple[str, int, Any]]:
+    """(camera, frame index, ``MatteItem``) for every usable image, camera by camera."""
+    from stages.matte.inference import MatteItem
+
+    items = []
+    for cam, ci in cameras.items():
+        for frame in ci.frames:
+            index = int(frame["index"])
+            items.append((cam, index, MatteItem(
+                image_path=str(ci.reader.path(index)), guide_path=str(ci.reader.path(ci.guides[index])),
+                olat=ci.light[index] != "F", reference=float(ci.reference),
+                olat_floor_ratio=float(params.train.inputs.olat_floor_ratio),
+                model_dir=str(model_dir) if model_dir is not None else "", model_digest=model_digest,
+                gate_low=params.gate_low, gate_high=params.gate_high, device=device, threads=params.threads,
+                baseline=params.baseline if model_dir is None else None)))
+    return items
+
+
 def run(ctx: StageContext) -> None:
     """Matte every image of the capture."""
+    from pipeline.itemcache import stage_item_cache
     from scene.image_io import write_png16
+    from stages.matte.inference import matte_item, matte_item_key
 
     params: MatteParams = ctx.params  # type: ignore[assignment]
     if params.threads:
@@ -209,9 +283,10 @@ def run(ctx: StageContext) -> None:
     capture = ctx.input("capture")
     manifest = _read_manifest(capture)
     device = _device(params)
-    cameras = {cam: CameraInputs(manifest, capture, cam, params.train.inputs) for cam in manifest["cameras"]}
+    cameras = {cam: CameraInputs(manifest, capture, cam, params.train.inputs, params.statistics_frames)
+               for cam in manifest["cameras"]}
     record: dict[str, Any] = {"method": params.method, "device": device}
-    model = None
+    model_dir, model_digest = None, "baseline"
     if params.method == "modnet":
         image_scale = _image_scale(manifest)
         model, meta, cached = trained_model(ctx, params, image_scale, device)
@@ -223,32 +298,37 @@ def run(ctx: StageContext) -> None:
         model, soc_record = soc_adapt(model, unlabelled, params.soc, device)
         record["soc"] = soc_record
         ctx.metrics["soc_seconds"] = float(soc_record["seconds"])
+        model_dir, model_digest = adapted_model_dir(ctx, model)
+        record["adapted_weights_digest"] = model_digest
 
-    total = sum(len(ci.frames) for ci in cameras.values())
-    written: dict[str, dict[int, Path]] = {}
+    jobs = inference_items(cameras, params, device, model_dir, model_digest)
+    written: dict[str, dict[int, Path]] = {cam: {} for cam in cameras}
+    for cam in cameras:
+        (ctx.out / "mattes" / cam).mkdir(parents=True, exist_ok=True)
+
+    def write(position: int, result: dict) -> float:
+        cam, index, _ = jobs[position]
+        path = ctx.out / "mattes" / cam / f"{index:06d}.png"
+        write_png16(path, np.asarray(result["alpha_u16"], np.float64) / 65535.0)  # exact: the same 16-bit values
+        written[cam][index] = path
+        return float(result["seconds"])
+
+    cache = stage_item_cache(ctx, code=("stages.matte.inputs", "stages.matte.modnet", "stages.matte.baseline",
+                                        "stages.matte.model_cache", "scene.image_io", "scene.colour"))
     start = time.perf_counter()
-    with ctx.progress(total, "images") as progress:
-        for cam, ci in cameras.items():
-            folder = ctx.out / "mattes" / cam
-            folder.mkdir(parents=True, exist_ok=True)
-            written[cam] = {}
-            indices = [int(f["index"]) for f in ci.frames]
-            for first in range(0, len(indices), params.batch_size):
-                batch = indices[first:first + params.batch_size]
-                if model is not None:
-                    alphas = predict(model, np.stack([ci.network_input(i) for i in batch]), params.batch_size, device,
-                                     params.gate_low, params.gate_high)
-                else:
-                    alphas = [baseline_matte(ci.reader.read(i), params.baseline) for i in batch]
-                for index, alpha in zip(batch, alphas):
-                    path = folder / f"{index:06d}.png"
-                    write_png16(path, alpha)
-                    written[cam][index] = path
-                progress.advance(len(batch))
+    item_seconds = cache.map(ctx.executor, matte_item, [job[2] for job in jobs], matte_item_key, desc="images",
+                             gpu=device.startswith("cuda"), consume=write)
     seconds = time.perf_counter() - start
+    cache.report(ctx, "images", metrics_prefix="images")
+    total = len(jobs)
     ctx.metrics["images"] = total
     ctx.metrics["inference_seconds"] = seconds
-    ctx.metrics["images_per_second"] = total / seconds if seconds > 0 else 0.0
+    # Throughput of the images matted by this run; when every image came from the cache, that of
+    # the runs that matted them (their per-image seconds are kept with the results).
+    if cache.misses and seconds > 0:
+        ctx.metrics["images_per_second"] = cache.misses / seconds
+    else:
+        ctx.metrics["images_per_second"] = total / sum(item_seconds) if sum(item_seconds) > 0 else 0.0
     write_contact_sheet(ctx.out / "contact_sheet.png", manifest, written, params.contact_sheet_frames)
     (ctx.out / "model.json").write_text(json.dumps(record, indent=1, sort_keys=True, default=str))
 

@@ -15,6 +15,11 @@ Output (every sequence in its own folder)::
 
 Environment maps render with the voxel-space light sum (one raymarch per frame); the naive
 render-each-light path is timed on ``naive_timing_frames`` frames and checked to agree.
+
+Frames fan out through ``ctx.executor`` (GPU items on CUDA) and are cached per frame in the
+stage's ``cache_dir`` (key: checkpoint digest, driving mesh, camera, lights, settings), so a
+rerun renders only frames it has not rendered before (metrics ``frames_reused``,
+``frames_computed``); seconds per frame are those measured when each frame was rendered.
 """
 
 from __future__ import annotations
@@ -23,6 +28,7 @@ import json
 import math
 import time
 import warnings
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -30,11 +36,16 @@ import torch
 from pydantic import Field
 
 from pipeline.errors import ConfigError, InputError
+from pipeline.hashing import hash_path
+from pipeline.itemcache import stage_item_cache
 from pipeline.stage import Stage, StageContext, StageParams
 from scene.envmap import AdaptiveParams, BackMask, EnvMapError, EnvMapWarning, read_envmap
 from stages.relight import sequences as seq
 from stages.relight.outputs import SequenceWriter
-from stages.relight.render import HeadRenderer
+from stages.relight.render import FrameItem, HeadRenderer, frame_key, render_frame
+
+# What a rendered frame depends on besides stages.relight.render itself (its cache entries' code version).
+RENDER_CODE = ("avatar", "scene.camera")
 
 ASSETS = Path(__file__).resolve().parents[2] / "assets" / "envmaps"
 DEFAULT_ENVMAPS = ("blender-cc0/courtyard.exr", "blender-cc0/studio.exr", "blender-cc0/sunrise.exr")
@@ -130,30 +141,66 @@ def _expression_meshes(ctx_inputs: dict[str, Path], params: RelightParams, num_v
         raise InputError(str(err)) from err
 
 
-def render_sequence(ctx: StageContext, renderer: HeadRenderer, name: str, frames: list[seq.FrameSpec],
-                    meshes: np.ndarray, manifest: dict) -> list[float]:
-    """Render and write one sequence; returns seconds per frame. Frames done survive an error."""
+@dataclass(frozen=True)
+class FrameSource:
+    """What every frame item of this run shares: the checkpoint and render settings (see ``render.FrameItem``)."""
+
+    model_dir: Path
+    model_digest: str
+    meshes_path: Path  # the stage's own meshes.npz ("default", "expressions")
+    steps: int
+    light_batch: int
+    rgb_scale: float
+    device: str
+
+    def items(self, frames: list[seq.FrameSpec], meshes: np.ndarray, mesh_array: str) -> list[FrameItem]:
+        """One picklable item per frame; the driving mesh is named by its array, row and content digest."""
+        from pipeline.hashing import hash_bytes
+
+        digests: dict[int, str] = {}
+        items = []
+        for spec in frames:
+            if spec.mesh_index not in digests:
+                row = np.ascontiguousarray(meshes[spec.mesh_index], np.float32)
+                digests[spec.mesh_index] = hash_bytes(row.tobytes())
+            items.append(FrameItem(
+                model_dir=str(self.model_dir), model_digest=self.model_digest, meshes_path=str(self.meshes_path),
+                mesh_array=mesh_array, mesh_index=spec.mesh_index, mesh_digest=digests[spec.mesh_index],
+                camera=spec.camera, light_pos=np.asarray(spec.light_pos), light_rgb=np.asarray(spec.light_rgb),
+                steps=self.steps, light_batch=self.light_batch, rgb_scale=self.rgb_scale, device=self.device))
+        return items
+
+
+def render_sequence(ctx: StageContext, source: FrameSource, name: str, frames: list[seq.FrameSpec],
+                    meshes: np.ndarray, mesh_array: str, manifest: dict) -> list[float]:
+    """Render and write one sequence; returns seconds per frame.
+
+    Frames fan out through ``ctx.executor`` (GPU items on CUDA) and are cached per frame in the
+    stage's ``cache_dir`` (``render.frame_key``): a rerun renders only frames it has not
+    rendered before. Each frame is written as soon as it (and every frame before it) exists,
+    and stored in the cache by the worker that rendered it, so an error keeps every frame done.
+    """
     writer = SequenceWriter(ctx.out / name, name, ctx.params.fps, ctx.log)
     seconds, records = [], []
     manifest[name] = records
-    geometry, geometry_index = None, -1
+    cache = stage_item_cache(ctx, code=RENDER_CODE)
+
+    def write(i: int, result: dict) -> None:
+        spec = frames[i]
+        seconds.append(float(result["seconds"]))
+        writer.write(i, np.asarray(result["rgb"], np.float32), np.asarray(result["alpha"], np.float32))
+        records.append({"index": i, "camera": spec.camera.to_dict(), "light_pos": spec.light_pos.tolist(),
+                        "light_rgb": spec.light_rgb.tolist(), "mesh_index": spec.mesh_index, **spec.info})
+
     try:
-        with ctx.progress(len(frames), f"{name} frames") as progress:
-            for i, spec in enumerate(frames):
-                if spec.mesh_index != geometry_index:
-                    geometry, geometry_index = renderer.geometry(meshes[spec.mesh_index]), spec.mesh_index
-                start = time.perf_counter()
-                img = renderer.render_lights(geometry, spec.camera, spec.light_pos, spec.light_rgb)
-                if renderer.device.type == "cuda":
-                    torch.cuda.synchronize()
-                seconds.append(time.perf_counter() - start)
-                writer.write(i, img.rgb, img.alpha)
-                records.append({"index": i, "camera": spec.camera.to_dict(), "light_pos": spec.light_pos.tolist(),
-                                "light_rgb": spec.light_rgb.tolist(), "mesh_index": spec.mesh_index, **spec.info})
-                progress.advance(1)
+        cache.map(ctx.executor, render_frame, source.items(frames, meshes, mesh_array), frame_key,
+                  desc=f"{name} frames", gpu=source.device.startswith("cuda"), consume=write)
     finally:
         writer.finish()
         (ctx.out / "renders.json").write_text(json.dumps(manifest, indent=1))
+    cache.report(ctx, f"{name} frames")
+    ctx.metrics["frames_reused"] = ctx.metrics.get("frames_reused", 0) + cache.hits
+    ctx.metrics["frames_computed"] = ctx.metrics.get("frames_computed", 0) + cache.misses
     return seconds
 
 
@@ -165,8 +212,11 @@ def run(ctx: StageContext) -> None:
     model, meta, default_mesh, expressions = load_inputs(dict(ctx.inputs), params, device)
     steps = params.steps_per_ray or model.config.steps_per_ray
     # The network learnt normalised images; EXR outputs are in the capture's linear units.
-    renderer = HeadRenderer(model, steps, params.light_batch, device,
-                            rgb_scale=1.0 / float(meta.get("image_scale", 1.0)))
+    rgb_scale = 1.0 / float(meta.get("image_scale", 1.0))
+    renderer = HeadRenderer(model, steps, params.light_batch, device, rgb_scale=rgb_scale)
+    model_dir = ctx.inputs["train"] / "models" / "ours"
+    source = FrameSource(model_dir, hash_path(model_dir), ctx.out / "meshes.npz", steps, params.light_batch,
+                         rgb_scale, device)
     view = seq.ViewSpec(params.width_px, params.height_px, params.distance_m, params.fov_deg,
                         tuple(float(v) for v in default_mesh.mean(0)))
     mask = BackMask(cone_half_angle_deg=params.back_cone_deg)
@@ -196,7 +246,7 @@ def run(ctx: StageContext) -> None:
                                          centroid=params.light_centroid)
         except EnvMapError as err:
             raise InputError(f"relight.envmaps: {err}") from err
-        envmap_seconds += render_sequence(ctx, renderer, f"envmap_{envmap.name}", frames, default, manifest)
+        envmap_seconds += render_sequence(ctx, source, f"envmap_{envmap.name}", frames, default, "default", manifest)
         directions += [f.info["directions"] for f in frames]
         geometry = renderer.geometry(default_mesh)
         for spec in frames[:max(0, params.naive_timing_frames - len(naive_seconds))]:
@@ -215,7 +265,7 @@ def run(ctx: StageContext) -> None:
                 falloff_reference_m=params.falloff_reference_m, mask=mask, what="orbit")
         for w in caught:
             ctx.log.warning("%s", w.message)
-        render_sequence(ctx, renderer, "point_orbit", frames, default, manifest)
+        render_sequence(ctx, source, "point_orbit", frames, default, "default", manifest)
     if params.point_lights:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always", seq.LightRangeWarning)
@@ -223,19 +273,19 @@ def run(ctx: StageContext) -> None:
                                               falloff_reference_m=params.falloff_reference_m, mask=mask)
         for w in caught:
             ctx.log.warning("%s", w.message)
-        render_sequence(ctx, renderer, "point_lights", frames, default, manifest)
+        render_sequence(ctx, source, "point_lights", frames, default, "default", manifest)
     if params.camera_eyes:
-        render_sequence(ctx, renderer, "views", seq.views_sequence(np.asarray(params.camera_eyes, float), view, key_pos,
-                                                                  key_rgb), default, manifest)
+        render_sequence(ctx, source, "views", seq.views_sequence(np.asarray(params.camera_eyes, float), view, key_pos,
+                                                                key_rgb), default, "default", manifest)
     if params.turntable_frames:
-        render_sequence(ctx, renderer, "turntable", seq.turntable_sequence(params.turntable_frames, view, key_pos,
-                                                                          key_rgb), default, manifest)
+        render_sequence(ctx, source, "turntable", seq.turntable_sequence(params.turntable_frames, view, key_pos,
+                                                                        key_rgb), default, "default", manifest)
     if params.dolly_zoom_frames:
-        render_sequence(ctx, renderer, "dolly_zoom", seq.dolly_zoom_sequence(params.dolly_zoom_frames, view, key_pos,
-                                                                            key_rgb), default, manifest)
+        render_sequence(ctx, source, "dolly_zoom", seq.dolly_zoom_sequence(params.dolly_zoom_frames, view, key_pos,
+                                                                          key_rgb), default, "default", manifest)
     if expressions is not None:
-        render_sequence(ctx, renderer, "expressions", seq.expression_sequence(expressions, view, key_pos, key_rgb),
-                        expressions, manifest)
+        render_sequence(ctx, source, "expressions", seq.expression_sequence(expressions, view, key_pos, key_rgb),
+                        expressions, "expressions", manifest)
 
     if envmap_seconds:
         metrics["envmap_seconds_per_frame"] = float(np.mean(envmap_seconds))

@@ -1,0 +1,78 @@
+"""Relight frames are cached per frame: more frames render only the new ones, the output equals an
+uncached run's, and frames rendered before a failure are reused by the rerun."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from avatar.io import save_trained
+from pipeline.testing import run_stage_for_test
+from stages.relight.stage import STAGE
+from tests.stages.relight.conftest import tiny_model
+
+ONLY = {"envmaps": ["blender-cc0/studio.exr"], "directions": 16, "orbit_frames": 0, "turntable_frames": 0,
+        "dolly_zoom_frames": 0, "naive_timing_frames": 0, "width_px": 12, "height_px": 16, "steps_per_ray": 8}
+
+
+@pytest.fixture(scope="module")
+def inputs(tmp_path_factory):
+    root = tmp_path_factory.mktemp("relight_cache_inputs")
+    model, verts = tiny_model()
+    save_trained(root / "train" / "models" / "ours", model, "ours")
+    (root / "track").mkdir()
+    np.savez(root / "track" / "meshes.npz", vertices=verts[None])
+    (root / "capture" / "scans").mkdir(parents=True)
+    np.savez(root / "capture" / "scans" / "scans.npz", names=np.array(["neutral"]), vertices=verts[None],
+             faces=np.zeros((1, 3), int))
+    return {k: root / k for k in ("train", "track", "capture")}
+
+
+def _run(inputs, root: Path, work: str, params: dict, share_cache_of: str | None = None) -> tuple[Path, dict]:
+    (root / work).mkdir()
+    if share_cache_of:
+        (root / work / ".cache").symlink_to(root / share_cache_of / ".cache", target_is_directory=True)
+    out = run_stage_for_test(STAGE, root / work, inputs, params)
+    return out, json.loads((out / "metrics.json").read_text())
+
+
+def _files(out: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(out)): p.read_bytes() for p in sorted(out.rglob("*"))
+            if p.is_file() and p.suffix in (".exr", ".png", ".npz") or p.name == "renders.json"}
+
+
+def test_more_frames_render_only_the_new_ones_and_equal_an_uncached_run(inputs, tmp_path):
+    lights = [(0.4, 0.2, 1.0), (-0.5, 0.1, 0.9)]
+    _, first = _run(inputs, tmp_path, "a", {**ONLY, "envmap_frames": 2, "point_lights": lights})
+    assert (first["frames_reused"], first["frames_computed"]) == (0, 4)
+    more = {**ONLY, "envmap_frames": 3, "point_lights": lights + [(0.0, 0.6, 0.8)]}
+    out, second = _run(inputs, tmp_path, "b", more, share_cache_of="a")
+    assert (second["frames_reused"], second["frames_computed"]) == (4, 2)
+    fresh, third = _run(inputs, tmp_path, "c", more)
+    assert third["frames_computed"] == 6
+    assert _files(out) == _files(fresh) and len(_files(out)) == 2 * 6 + 2  # EXR + PNG per frame, meshes, manifest
+
+
+def test_frames_rendered_before_a_failure_are_reused(inputs, tmp_path, monkeypatch):
+    from stages.relight.render import HeadRenderer
+
+    original = HeadRenderer.render_lights
+    calls = {"n": 0}
+
+    def flaky(self, *args, **kwargs):
+        calls["n"] += 1
+        if calls["n"] == 3:
+            raise RuntimeError("GPU fell off the bus")
+        return original(self, *args, **kwargs)
+
+    params = {**ONLY, "envmaps": [], "point_lights": [(0.4, 0.2, 1.0), (-0.5, 0.1, 0.9), (0.0, 0.6, 0.8),
+                                                      (0.3, -0.2, 1.1)]}
+    monkeypatch.setattr(HeadRenderer, "render_lights", flaky)
+    with pytest.raises(RuntimeError, match="fell off"):
+        _run(inputs, tmp_path, "a", params)
+    monkeypatch.setattr(HeadRenderer, "render_lights", original)
+    _, rerun = _run(inputs, tmp_path, "b", params, share_cache_of="a")
+    assert (rerun["frames_reused"], rerun["frames_computed"]) == (2, 2)
