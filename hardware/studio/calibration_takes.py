@@ -8,6 +8,12 @@ images is exactly the camera model's. Output layout (TEAM.md, capture object)::
     calib/mirror.json                    sphere spec {"radius_m", "count", ...}
     calib/mirror/<cam>/room.exr          spheres under the room light, bars off (silhouettes)
     calib/mirror/<cam>/bar<b:02d>.exr    spheres lit by bar b alone
+    calib/mirror_roi.json                native-resolution windows of the mirror take (when the
+    calib/mirror_roi/<cam>/<name>_<k>.exr  take is coarser than the sensor): boxes + images
+
+The mirror take is shot coarse-to-fine, as a studio with region-of-interest readout would:
+full images at the take's resolution, then, found in them, small windows around the balls
+and each bar's highlights read out at the sensor's native resolution (``render_mirror_rois``).
 
 Ground truth (the board poses, the sphere centres) goes to ``truth_dir`` as
 ``calib_board_poses.json`` and ``mirror_spheres.json``.
@@ -87,6 +93,19 @@ class CalibrationTakeParams(BaseModel):
     room_radiance: float = Field(0.15, ge=0, description="Room light seen in the spheres in the silhouette take.")
     background: float = Field(0.01, ge=0, description="Radiance of the black backdrop.")
     white_level: float = Field(1.0, gt=0, description="Sensor saturation level (linear); images are clipped to it.")
+    mirror_roi: bool = Field(
+        True, description="Coarse-to-fine mirror take: find the balls and highlights in the full (performance-"
+        "resolution) mirror images, then read out small windows around them at the sensor's native resolution "
+        "(calib/mirror_roi/, as a region-of-interest readout); only when the native resolution is finer.")
+    roi_threshold_sigma: float = Field(
+        6.0, gt=0, description="A pixel of the coarse mirror image belongs to a highlight or ball window when it "
+        "rises this many noise sigmas above the background.")
+    roi_pad_px: int = Field(6, ge=2, description="Margin around a detected highlight or ball, native pixels.")
+    roi_coarse_supersample: int = Field(
+        2, ge=1, le=8, description="Rays per native pixel per axis in a window's first pass (finds the lit pixels).")
+    roi_highlight_supersample: int = Field(
+        8, ge=1, le=64, description="Rays per native pixel per axis on a window's lit pixels (the streak is about "
+        "half a native pixel wide).")
 
 
 @dataclass(frozen=True)
@@ -388,6 +407,139 @@ def render_mirror_images(cam: Camera, sphere_centers_world: np.ndarray, spheres:
     return {n: _sensor(img, params, rng) for n, img in clean.items()}
 
 
+# ---- native-resolution windows (region-of-interest readout) -------------------------------
+
+def detect_windows(grey: np.ndarray, threshold_sigma: float, min_pixels: int = 1) -> list[tuple[int, int, int, int]]:
+    """Boxes (x0, y0, x1, y1, exclusive ends) of the bright blobs in a mostly dark image [H, W].
+
+    What the studio does on its coarse image before the region-of-interest readout: pixels
+    ``threshold_sigma`` noise sigmas (median / MAD) above the background, grown by a pixel
+    (the blurred tails), grouped into connected blobs.
+    """
+    import cv2
+
+    bg = float(np.median(grey))
+    sigma = max(float(1.4826 * np.median(np.abs(grey - bg))), 1e-6)
+    mask = (grey > bg + threshold_sigma * sigma).astype(np.uint8)
+    mask = cv2.dilate(mask, np.ones((3, 3), np.uint8))
+    n, _, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
+    return [(int(x), int(y), int(x + w), int(y + h)) for x, y, w, h, area in stats[1:] if area >= min_pixels]
+
+
+def native_box(box: tuple[int, int, int, int], scale: float, pad_px: int, width: int, height: int
+               ) -> tuple[int, int, int, int] | None:
+    """A coarse-image pixel box in the native image (``scale`` = native / coarse), padded and clipped.
+
+    Coarse pixel i covers [i - 0.5, i + 0.5] in pixel-centre coordinates and native u = (u_c + 0.5) s - 0.5,
+    so coarse pixels [x0, x1) span native [x0 s - 0.5, x1 s - 0.5]: native pixels floor(x0 s) to
+    floor(x1 s) (pixel j spans [j - 0.5, j + 0.5]).
+    """
+    x0, y0, x1, y1 = box
+    nx0 = int(np.floor(x0 * scale)) - pad_px
+    ny0 = int(np.floor(y0 * scale)) - pad_px
+    nx1 = int(np.floor(x1 * scale)) + 1 + pad_px
+    ny1 = int(np.floor(y1 * scale)) + 1 + pad_px
+    nx0, ny0, nx1, ny1 = max(nx0, 0), max(ny0, 0), min(nx1, width), min(ny1, height)
+    if nx1 <= nx0 or ny1 <= ny0:
+        return None
+    return nx0, ny0, nx1, ny1
+
+
+def render_mirror_window(cam: Camera, box: tuple[int, int, int, int], sphere_centers_world: np.ndarray,
+                         spheres: MirrorSpheresConfig, bar: BarLight | None, params: CalibrationTakeParams
+                         ) -> np.ndarray:
+    """Clean radiance [h, w] of the pixels in ``box`` of the mirror take: the balls lit by ``bar`` (None: room light).
+
+    Rendered like ``render_mirror_images`` but only for the window's pixel rays: a first pass
+    with ``roi_coarse_supersample`` rays per pixel, then the lit pixels (and their neighbours)
+    again with ``roi_highlight_supersample``; the room light's balls with one ray per pixel,
+    then ``mirror_supersample`` on the pixels along their outlines.
+    """
+    import cv2
+
+    x0, y0, x1, y1 = box
+    r = spheres.radius_m
+    if bar is None:
+        # uniform inside a ball: one ray per pixel, then ``mirror_supersample`` on the outline's pixels
+        origin, dirs = _supersampled_rays(cam, 1, box)
+        hit = _sphere_hits(origin, dirs.reshape(-1, 3), sphere_centers_world, r)[0].reshape(dirs.shape[:2])
+        img = np.where(hit, spheres.reflectance * params.room_radiance, params.background)
+        kernel = np.ones((3, 3), np.uint8)
+        u8 = hit.astype(np.uint8)
+        edge = cv2.dilate(u8, kernel) != cv2.erode(u8, kernel)
+        ys, xs = np.nonzero(edge)
+        if len(ys):
+            fine = _pixel_rays_at(cam, np.stack([xs + x0, ys + y0], -1), params.mirror_supersample)
+            fhit = _sphere_hits(origin, fine.reshape(-1, 3), sphere_centers_world, r)[0].reshape(len(ys), -1)
+            img[ys, xs] = np.where(fhit, spheres.reflectance * params.room_radiance, params.background).mean(-1)
+        return img
+    origin, dirs = _supersampled_rays(cam, params.roi_coarse_supersample, box)
+    shape = dirs.shape[:-1]  # [h, w, S]
+    hit, p, refl = _sphere_hits(origin, dirs.reshape(-1, 3), sphere_centers_world, r)
+    radiance = np.full(hit.shape, params.background)
+    radiance[hit] = spheres.reflectance * _bar_radiance(bar, p, refl, params)
+    radiance = radiance.reshape(shape)
+    img = radiance.mean(axis=-1)
+    lit = (radiance > params.background).any(axis=-1).astype(np.uint8)
+    lit = cv2.dilate(lit, np.ones((3, 3), np.uint8)).astype(bool)
+    if lit.any():
+        ys, xs = np.nonzero(lit)
+        fine = _pixel_rays_at(cam, np.stack([xs + x0, ys + y0], -1), params.roi_highlight_supersample)
+        fhit, fp, frefl = _sphere_hits(origin, fine.reshape(-1, 3), sphere_centers_world, r)
+        fr = np.full(fhit.shape, params.background)
+        fr[fhit] = spheres.reflectance * _bar_radiance(bar, fp, frefl, params)
+        img[ys, xs] = fr.reshape(len(ys), -1).mean(axis=-1)
+    return img
+
+
+def render_mirror_rois(native_cam: Camera, coarse_images: dict[str, np.ndarray], sphere_centers_world: np.ndarray,
+                       spheres: MirrorSpheresConfig, bars: Sequence[BarLight], params: CalibrationTakeParams,
+                       rng: np.random.Generator) -> dict[str, list[tuple[tuple[int, int, int, int], np.ndarray]]]:
+    """Native-resolution windows around what the coarse mirror take shows, per image name.
+
+    ``coarse_images`` is ``render_mirror_images``' output for the same camera at a coarser
+    resolution. For ``room`` the windows hold the balls, for ``bar<b>`` the highlights; each
+    is found in the coarse image (``detect_windows``) and read out at ``native_cam``'s
+    resolution. Returns ``{name: [(box (x0, y0, x1, y1) native px, image [h, w, 3]), ...]}``.
+    """
+    by_name = {f"bar{b.id:02d}": b for b in bars}
+    out: dict[str, list] = {}
+    for name, coarse in coarse_images.items():
+        grey = coarse[..., :3].mean(axis=-1)
+        scale = native_cam.width / grey.shape[1]
+        bar = by_name.get(name)
+        windows = []
+        for box in detect_windows(grey, params.roi_threshold_sigma, min_pixels=1 if bar is not None else 9):
+            nbox = native_box(box, scale, params.roi_pad_px, native_cam.width, native_cam.height)
+            if nbox is None:
+                continue
+            clean = render_mirror_window(native_cam, nbox, sphere_centers_world, spheres, bar, params)
+            windows.append((nbox, _sensor(clean, params, rng)))
+        out[name] = windows
+    return out
+
+
+def write_mirror_rois(calib: Path, cam_name: str, native_cam: Camera,
+                      rois: dict[str, list[tuple[tuple[int, int, int, int], np.ndarray]]], index: dict) -> None:
+    """Write one camera's windows as ``calib/mirror_roi/<cam>/<name>_<k:02d>.exr`` and record them in ``index``.
+
+    ``index`` is the ``calib/mirror_roi.json`` content being built (``{"width", "height", "cameras"}``).
+    """
+    cdir = calib / "mirror_roi" / cam_name
+    cdir.mkdir(parents=True, exist_ok=True)
+    entry = {}
+    for name, windows in rois.items():
+        files = []
+        for k, (box, img) in enumerate(windows):
+            file = f"{name}_{k:02d}.exr"
+            write_exr(cdir / file, img)
+            files.append({"file": file, "box": list(box)})
+        entry[name] = files
+    index.setdefault("width", native_cam.width)
+    index.setdefault("height", native_cam.height)
+    index.setdefault("cameras", {})[cam_name] = entry
+
+
 # ---- the take ---------------------------------------------------------------------------
 
 def _rigid_dict(x: Rigid) -> dict:
@@ -399,7 +551,8 @@ def render_calibration_takes(cameras: Sequence[Camera], bars: Sequence[BarLight]
                              board: CharucoBoardConfig = CharucoBoardConfig(),
                              spheres: MirrorSpheresConfig = MirrorSpheresConfig(),
                              progress=None, board_cameras: Sequence[Camera] | None = None,
-                             mirror_cameras: Sequence[Camera] | None = None) -> None:
+                             mirror_cameras: Sequence[Camera] | None = None,
+                             roi_cameras: Sequence[Camera] | None = None) -> None:
     """Render the board and mirror-sphere takes for every camera into ``out_dir/calib``.
 
     Args:
@@ -417,6 +570,13 @@ def render_calibration_takes(cameras: Sequence[Camera], bars: Sequence[BarLight]
         mirror_cameras: likewise for the mirror-sphere take. Default: ``cameras``. At native
             resolution the bars are placed to a few millimetres (lightcal's ridge line fit)
             but the take costs ~10x the CPU time.
+        roi_cameras: the same cameras at the sensors' native resolution, for the mirror take's
+            windows (``params.mirror_roi``). Default: ``board_cameras`` (the board take is shot
+            at the native resolution). No windows when they are not finer than ``mirror_cameras``.
+
+    With windows, ``calib/mirror_roi.json`` lists them: ``{"width", "height", "cameras": {cam:
+    {"room" | "bar<b:02d>": [{"file", "box": [x0, y0, x1, y1]}, ...]}}}`` (native pixels, exclusive
+    ends), the images in ``calib/mirror_roi/<cam>/<file>``.
     """
     mirror_cameras = list(cameras) if mirror_cameras is None else list(mirror_cameras)
     if [c.name for c in mirror_cameras] != [c.name for c in cameras]:
@@ -424,6 +584,10 @@ def render_calibration_takes(cameras: Sequence[Camera], bars: Sequence[BarLight]
     board_cameras = list(cameras) if board_cameras is None else list(board_cameras)
     if [c.name for c in board_cameras] != [c.name for c in cameras]:
         raise ValueError("board_cameras must be the same cameras as cameras, in the same order")
+    roi_cameras = board_cameras if roi_cameras is None else list(roi_cameras)
+    if [c.name for c in roi_cameras] != [c.name for c in cameras]:
+        raise ValueError("roi_cameras must be the same cameras as cameras, in the same order")
+    roi_index: dict = {}
     out_dir, truth_dir = Path(out_dir), Path(truth_dir)
     calib = out_dir / "calib"
     calib.mkdir(parents=True, exist_ok=True)
@@ -439,13 +603,7 @@ def render_calibration_takes(cameras: Sequence[Camera], bars: Sequence[BarLight]
     }, indent=1))
     (truth_dir / "calib_board_poses.json").write_text(json.dumps(
         {"world_from_board": [_rigid_dict(p) for p in poses]}, indent=1))
-    centre = np.asarray(params.volume_center_m, float)
-    sphere_centers = centre + np.asarray(spheres.offsets_m, float)
-    (calib / "mirror.json").write_text(json.dumps({
-        "radius_m": spheres.radius_m, "count": len(sphere_centers), "silhouette_image": "room.exr",
-        "bars": [int(b.id) for b in bars]}, indent=1))
-    (truth_dir / "mirror_spheres.json").write_text(json.dumps(
-        {"radius_m": spheres.radius_m, "centers_world": sphere_centers.tolist()}, indent=1))
+    sphere_centers = _write_mirror_spec(calib, truth_dir, spheres, bars, params)
     for ci, (cam, board_cam) in enumerate(zip(cameras, board_cameras)):
         cam_rng = np.random.default_rng([params.seed, ci])
         rays = None
@@ -461,13 +619,78 @@ def render_calibration_takes(cameras: Sequence[Camera], bars: Sequence[BarLight]
         del rays
         if progress is not None:
             progress.advance(1)
-        mdir = calib / "mirror" / cam.name
-        mdir.mkdir(parents=True, exist_ok=True)
-        for name, img in render_mirror_images(mirror_cameras[ci], sphere_centers, spheres, bars, params,
-                                              cam_rng).items():
-            write_exr(mdir / f"{name}.exr", img)
+        _render_camera_mirror_take(calib, ci, mirror_cameras[ci], roi_cameras[ci], sphere_centers, spheres, bars,
+                                   params, cam_rng, roi_index)
         if progress is not None:
             progress.advance(1)
+    _write_roi_index(calib, roi_index)
+
+
+def _write_mirror_spec(calib: Path, truth_dir: Path, spheres: MirrorSpheresConfig, bars: Sequence[BarLight],
+                       params: CalibrationTakeParams) -> np.ndarray:
+    """Write ``calib/mirror.json`` and the balls' truth; returns the ball centres [K, 3] (world)."""
+    sphere_centers = np.asarray(params.volume_center_m, float) + np.asarray(spheres.offsets_m, float)
+    (calib / "mirror.json").write_text(json.dumps({
+        "radius_m": spheres.radius_m, "count": len(sphere_centers), "silhouette_image": "room.exr",
+        "bars": [int(b.id) for b in bars]}, indent=1))
+    (truth_dir / "mirror_spheres.json").write_text(json.dumps(
+        {"radius_m": spheres.radius_m, "centers_world": sphere_centers.tolist()}, indent=1))
+    return sphere_centers
+
+
+def _render_camera_mirror_take(calib: Path, ci: int, mirror_cam: Camera, roi_cam: Camera, sphere_centers: np.ndarray,
+                               spheres: MirrorSpheresConfig, bars: Sequence[BarLight], params: CalibrationTakeParams,
+                               rng: np.random.Generator, roi_index: dict) -> tuple[float, float]:
+    """One camera's mirror take (full images, then its native windows); (seconds full, seconds windows)."""
+    import time
+
+    start = time.perf_counter()
+    mdir = calib / "mirror" / mirror_cam.name
+    mdir.mkdir(parents=True, exist_ok=True)
+    coarse = render_mirror_images(mirror_cam, sphere_centers, spheres, bars, params, rng)
+    for name, img in coarse.items():
+        write_exr(mdir / f"{name}.exr", img)
+    coarse_s = time.perf_counter() - start
+    if params.mirror_roi and roi_cam.width > mirror_cam.width:
+        rois = render_mirror_rois(roi_cam, coarse, sphere_centers, spheres, bars, params,
+                                  np.random.default_rng([params.seed, ci, 1]))
+        write_mirror_rois(calib, mirror_cam.name, roi_cam, rois, roi_index)
+    return coarse_s, time.perf_counter() - start - coarse_s
+
+
+def _write_roi_index(calib: Path, roi_index: dict) -> None:
+    if roi_index:
+        roi_index["note"] = ("native-resolution windows of the mirror take around the balls (room) and each bar's "
+                             "highlights; box = [x0, y0, x1, y1] native pixels, exclusive ends")
+        (calib / "mirror_roi.json").write_text(json.dumps(roi_index, indent=1))
+
+
+def render_mirror_take(cameras: Sequence[Camera], bars: Sequence[BarLight], out_dir: Path, truth_dir: Path,
+                       params: CalibrationTakeParams, spheres: MirrorSpheresConfig = MirrorSpheresConfig(),
+                       roi_cameras: Sequence[Camera] | None = None) -> dict[str, float]:
+    """The mirror-sphere take alone (no board), as ``render_calibration_takes`` shoots it.
+
+    ``cameras`` at the take's (coarse) resolution, ``roi_cameras`` (same order) at the native
+    resolution of the windows (None: no windows). Camera ``i`` draws its noise from the same
+    seeds as in ``render_calibration_takes``, but the images differ (there the board take
+    draws first). Returns the seconds spent on the full images and on the windows.
+    """
+    roi_cameras = list(cameras) if roi_cameras is None else list(roi_cameras)
+    if [c.name for c in roi_cameras] != [c.name for c in cameras]:
+        raise ValueError("roi_cameras must be the same cameras as cameras, in the same order")
+    calib, truth_dir = Path(out_dir) / "calib", Path(truth_dir)
+    calib.mkdir(parents=True, exist_ok=True)
+    truth_dir.mkdir(parents=True, exist_ok=True)
+    sphere_centers = _write_mirror_spec(calib, truth_dir, spheres, bars, params)
+    roi_index: dict = {}
+    seconds = {"full_s": 0.0, "windows_s": 0.0}
+    for ci, (cam, roi_cam) in enumerate(zip(cameras, roi_cameras)):
+        full_s, windows_s = _render_camera_mirror_take(calib, ci, cam, roi_cam, sphere_centers, spheres, bars, params,
+                                                       np.random.default_rng([params.seed, ci]), roi_index)
+        seconds["full_s"] += full_s
+        seconds["windows_s"] += windows_s
+    _write_roi_index(calib, roi_index)
+    return seconds
 
 
 

@@ -127,21 +127,34 @@ def find_highlight(grey: np.ndarray, centre_px: np.ndarray, radius_px: float, bg
     return Highlight(camera, sphere, centroid, major, sig_major, sig_minor, peak, bool(saturated), ends, ridge, mid)
 
 
+def reflect_rays(cam: Camera, uv: np.ndarray, centre: np.ndarray, radius_m: float
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Reflect the viewing rays through pixels ``uv`` [N, 2] off the ball (batched ``reflect_ray``).
+
+    Returns hit mask [N] (False: the ray misses the ball), points [N, 3], reflected directions
+    [N, 3] and incidence angles in degrees [N]; entries where the ray misses are NaN.
+    """
+    o, d = cam.pixel_rays(np.asarray(uv, float).reshape(-1, 2))  # [N, 3] each
+    oc = o - centre
+    b = (d * oc).sum(-1)  # [N]
+    disc = b * b - ((oc * oc).sum(-1) - radius_m ** 2)
+    hit = disc >= 0
+    t = np.where(hit, -b - np.sqrt(np.where(hit, disc, 0.0)), np.nan)
+    p = o + t[:, None] * d
+    n = (p - centre) / radius_m
+    dn = (d * n).sum(-1, keepdims=True)
+    refl = d - 2 * dn * n
+    incidence = np.degrees(np.arccos(np.clip(-dn[:, 0], -1, 1)))
+    return hit, p, refl, incidence
+
+
 def reflect_ray(cam: Camera, uv: np.ndarray, centre: np.ndarray, radius_m: float
                 ) -> tuple[np.ndarray, np.ndarray, float] | None:
     """Reflect the viewing ray through pixel ``uv`` [2] off the ball; (point [3], direction [3], incidence deg).
 
     None when the ray misses the ball.
     """
-    o, d = cam.pixel_rays(np.asarray(uv, float))
-    oc = o - centre
-    b = d @ oc
-    disc = b * b - (oc @ oc - radius_m ** 2)
-    if disc < 0:
+    hit, p, refl, incidence = reflect_rays(cam, np.asarray(uv, float)[None], centre, radius_m)
+    if not hit[0]:
         return None
-    t = -b - np.sqrt(disc)
-    p = o + t * d
-    n = (p - centre) / radius_m
-    refl = d - 2 * (d @ n) * n
-    incidence = float(np.degrees(np.arccos(np.clip(-(d @ n), -1, 1))))
-    return p, refl, incidence
+    return p[0], refl[0], float(incidence[0])

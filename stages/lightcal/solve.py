@@ -20,18 +20,20 @@ def ray_distances(x: np.ndarray, points: np.ndarray, dirs: np.ndarray) -> np.nda
     return np.linalg.norm(v - (v * dirs).sum(-1, keepdims=True) * dirs, axis=-1)
 
 
-def robust_closest_point(points: np.ndarray, dirs: np.ndarray, iterations: int = 5
-                         ) -> tuple[np.ndarray, np.ndarray]:
+def robust_closest_point(points: np.ndarray, dirs: np.ndarray, iterations: int = 5,
+                         prior: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Closest point with iterative reweighting (Cauchy-like): a wrong highlight cannot drag it far.
 
-    Returns the point [3] and the final weights [N].
+    ``prior`` [N]: per-ray weights known beforehand (inverse variances, say), multiplied in.
+    Returns the point [3] and the final weights [N] (robust times prior).
     """
-    x = closest_point(points, dirs)
-    w = np.ones(len(points))
+    prior = np.ones(len(points)) if prior is None else np.asarray(prior, float)
+    x = closest_point(points, dirs, prior)
+    w = prior
     for _ in range(iterations):
         r = ray_distances(x, points, dirs)
         scale = max(1.4826 * float(np.median(r)), 1e-4)
-        w = 1.0 / (1.0 + (r / (2 * scale)) ** 2)
+        w = prior / (1.0 + (r / (2 * scale)) ** 2)
         x = closest_point(points, dirs, w)
     return x, w
 

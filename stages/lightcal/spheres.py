@@ -33,16 +33,18 @@ def background_and_noise(grey: np.ndarray) -> tuple[float, float]:
     return bg, max(sigma, 1e-6)
 
 
-def find_silhouettes(grey: np.ndarray, camera: str, min_radius_px: float = 4.0, angles: int = 180
-                     ) -> tuple[list[Silhouette], list[str]]:
+def find_silhouettes(grey: np.ndarray, camera: str, min_radius_px: float = 4.0, angles: int = 180,
+                     noise: tuple[float, float] | None = None) -> tuple[list[Silhouette], list[str]]:
     """Bright round blobs (the balls under room light) and their sub-pixel outlines.
 
+    ``noise``: (background, sigma) when known from elsewhere (an image of windows pasted on a
+    flat background has no noise to measure); default: measured in ``grey``.
     Returns the silhouettes and notes on blobs that were rejected (cut by the image border,
     not round: two balls overlapping in this view).
     """
     import cv2
 
-    bg, sigma = background_and_noise(grey)
+    bg, sigma = background_and_noise(grey) if noise is None else noise
     mask = grey > bg + 8 * sigma
     if not mask.any():
         return [], ["no bright blob"]

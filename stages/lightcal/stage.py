@@ -1,12 +1,19 @@
 """``lightcal``: the 3D position (and axis) of every LED bar from mirror-sphere takes.
 
+Images come from ``calib/mirror/<cam>/`` or, where the capture has them, from its native-
+resolution windows (``calib/mirror_roi.json``; ``mirror_take.MirrorTake`` serves both alike).
+
 1. Ball silhouettes in ``calib/mirror/<cam>/<silhouette image>`` (room light, bars off) give,
    with the calibrated cameras and the known radius, every ball's centre (tangent-cone fit
    per camera, then a joint least-squares fit over all cameras).
-2. In ``calib/mirror/<cam>/bar<b>.exr`` the bar's highlight on each ball is found; the
-   viewing ray through its centroid is reflected off the ball.
-3. The bar's centre is the point closest to all its reflected rays (robustly reweighted);
-   its axis comes from the highlights' long image axes where they are elongated.
+2. In ``calib/mirror/<cam>/bar<b>.exr`` the bar's highlight on each ball is found (a streak:
+   its ends and its ridge, the centre line); the viewing ray through the ridge's middle is
+   reflected off the ball. Highlights near the rim (grazing) are dropped past
+   ``max_incidence_deg`` and weighted down by cos(incidence)^power before it.
+3. The bar's centre is the point closest to all its reflected rays (robustly reweighted),
+   slid along the bar to the middle of its triangulated ends; its axis comes from the
+   streaks' ends. With balls large enough in the images, the line through it is refined so
+   that the rays reflected all along every streak's ridge meet it (least squares).
 
 Outputs ``bars.json`` (the truth schema: id, center_world, axis_world, length_m, intensity,
 normal_world, plus per-bar fit statistics), ``spheres.json`` and ``report.json``.
@@ -24,10 +31,10 @@ from pydantic import Field
 from pipeline.errors import InputError
 from pipeline.stage import Stage, StageContext, StageParams
 from scene.camera import Camera, load_cameras
-from scene.image_io import read_exr
-from stages.lightcal.highlights import Highlight, find_highlight, reflect_ray
+from stages.lightcal.highlights import Highlight, find_highlight, reflect_ray, reflect_rays
+from stages.lightcal.mirror_take import MirrorTake, read_grey
 from stages.lightcal.solve import conditioning, ray_distances, ray_line_distances, robust_closest_point
-from stages.lightcal.spheres import (Silhouette, background_and_noise, cone_centre, find_silhouettes,
+from stages.lightcal.spheres import (Silhouette, cone_centre, find_silhouettes,
                                      group_estimates, refine_centre)
 
 
@@ -36,7 +43,11 @@ class LightcalParams(StageParams):
 
     min_snr: float = Field(12.0, gt=0, description="A highlight must rise this many noise sigmas above the background.")
     max_incidence_deg: float = Field(
-        60.0, gt=0, lt=90, description="Highlights nearer the ball's rim than this incidence angle are ignored.")
+        50.0, gt=0, lt=90, description="Highlights (and ridge points) nearer the ball's rim than this incidence angle are ignored.")
+    incidence_weight_power: float = Field(
+        2.0, ge=0, description="Rays reflected near a ball's rim (grazing) are weighted by cos(incidence)^power in "
+        "the fits: there the ball's image is compressed, so a pixel of error turns the reflected ray by 1/cos "
+        "times more (power 2 = inverse variance; 0 = equal weights).")
     min_rays: int = Field(3, ge=2, description="Fewest highlights (ball x camera) needed to place a bar.")
     min_elongation: float = Field(1.5, ge=1, description="Long/short axis ratio above which a highlight gives the bar's axis.")
     per_camera_centres: bool = Field(
@@ -52,6 +63,9 @@ class LightcalParams(StageParams):
         "line_fit_min_ball_px in radius in the images (native resolution), else 'off' (short noisy ridges).")
     line_fit_min_ball_px: float = Field(
         50.0, gt=0, description="Median ball radius in pixels from which line_fit 'auto' refines the bar's line.")
+    use_windows: bool = Field(
+        True, description="Use the mirror take's native-resolution windows (calib/mirror_roi.json) where the "
+        "capture has them; False: the full images only.")
     allow_missing_bars: bool = Field(
         False, description="Leave out (with a warning) bars that cannot be placed instead of failing.")
 
@@ -68,11 +82,7 @@ def _load_mirror_spec(capture: Path) -> dict:
 
 
 def _grey(path: Path) -> np.ndarray:
-    try:
-        img = read_exr(path)
-    except ValueError as err:
-        raise InputError(str(err)) from err
-    return img[..., :3].mean(axis=-1).astype(np.float64) if img.shape[-1] >= 3 else img[..., 0].astype(np.float64)
+    return read_grey(path)
 
 
 def _at_mirror_resolution(cams: dict[str, Camera], capture: Path, image_name: str) -> dict[str, Camera]:
@@ -98,16 +108,23 @@ def _at_mirror_resolution(cams: dict[str, Camera], capture: Path, image_name: st
     return out
 
 
-def locate_spheres(cams: dict[str, Camera], capture: Path, image_name: str, radius_m: float, count: int, log
+def locate_spheres(cams: dict[str, Camera], capture: Path, image_name: str, radius_m: float, count: int, log,
+                   take: MirrorTake | None = None
                    ) -> tuple[list[np.ndarray], dict[tuple[str, int], Silhouette], list[float]]:
-    """Ball centres in world space and, per (camera, ball), the silhouette seen."""
+    """Ball centres in world space and, per (camera, ball), the silhouette seen.
+
+    ``take`` serves the images (native windows where the capture has them); default: the full images.
+    """
+    take = MirrorTake(capture, use_windows=False) if take is None else take
     per_cam: list[tuple[str, Silhouette, np.ndarray]] = []
     for name, cam in cams.items():
-        path = capture / "calib" / "mirror" / name / image_name
-        if not path.is_file():
-            log.warning("%s: no silhouette image %s; camera not used for the balls", name, path)
+        loaded = take.image(name, Path(image_name).stem)
+        if loaded is None:
+            log.warning("%s: no silhouette image %s; camera not used for the balls", name,
+                        capture / "calib" / "mirror" / name / image_name)
             continue
-        sils, notes = find_silhouettes(_grey(path), name)
+        grey, bg, sigma = loaded
+        sils, notes = find_silhouettes(grey, name, noise=(bg, sigma))
         for note in notes:
             log.info("%s %s: %s", name, image_name, note)
         for s in sils:
@@ -144,8 +161,13 @@ def run(ctx: StageContext) -> None:
     spec = _load_mirror_spec(capture)
     radius = float(spec["radius_m"])
     image_name = str(spec.get("silhouette_image", "room.exr"))
-    cams = _at_mirror_resolution(cams, capture, image_name)
-    centres, sil_of, sphere_rms = locate_spheres(cams, capture, image_name, radius, int(spec.get("count", 0)), ctx.log)
+    take = MirrorTake(capture, params.use_windows)
+    cams = take.cameras(cams, _at_mirror_resolution(cams, capture, image_name))
+    windowed = sum(take.has_windows(n) for n in cams)
+    if windowed:
+        ctx.log.info("mirror take: native %dx%d windows for %d of %d cameras", *take.native_size, windowed, len(cams))
+    centres, sil_of, sphere_rms = locate_spheres(cams, capture, image_name, radius, int(spec.get("count", 0)), ctx.log,
+                                                 take)
     bar_ids = [int(b) for b in spec.get("bars", [])] or sorted(
         {int(p.stem[3:]) for p in (capture / "calib" / "mirror").glob("*/bar*.exr")})
     if not bar_ids:
@@ -163,7 +185,7 @@ def run(ctx: StageContext) -> None:
     bars_out, report, failures = [], {}, []
     with ctx.progress(len(bar_ids), "bars") as progress:
         for b in bar_ids:
-            entry, info = _solve_bar(b, cams, capture, sil_of, centre_for, radius, params, ctx.log)
+            entry, info = _solve_bar(b, cams, take, sil_of, centre_for, radius, params, ctx.log)
             report[f"bar{b:02d}"] = info
             if entry is None:
                 failures.append(f"bar {b}: {info['error']}")
@@ -192,23 +214,23 @@ def run(ctx: StageContext) -> None:
     ctx.metrics["bars"] = len(bars_out)
     ctx.metrics["bars_missing"] = len(failures)
     ctx.metrics["spheres"] = len(centres)
+    ctx.metrics["cameras_with_windows"] = windowed
     ctx.metrics["sphere_outline_rms_mm_max"] = 1e3 * float(max(sphere_rms))
     ctx.metrics["highlights_used_mean"] = float(np.mean([e["rays"] for e in bars_out])) if bars_out else 0.0
 
 
-def _solve_bar(b: int, cams: dict[str, Camera], capture: Path, sil_of: dict[tuple[str, int], Silhouette],
+def _solve_bar(b: int, cams: dict[str, Camera], take: MirrorTake, sil_of: dict[tuple[str, int], Silhouette],
                centre_for: dict[tuple[str, int], np.ndarray], radius: float, params: LightcalParams, log
                ) -> tuple[dict | None, dict]:
     """Find bar ``b``'s highlights, reflect them, and place the bar; (bars.json entry or None, report)."""
-    rays: list[tuple[np.ndarray, np.ndarray, Highlight, Camera, np.ndarray]] = []
-    seen_saturated, images = 0, 0
+    rays: list[tuple[np.ndarray, np.ndarray, Highlight, Camera, np.ndarray, float]] = []  # (point, dir, hl, cam, ball, incidence deg)
+    seen_saturated, saturated_in_windows, images = 0, 0, 0
     for name, cam in cams.items():
-        path = capture / "calib" / "mirror" / name / f"bar{b:02d}.exr"
-        if not path.is_file():
+        loaded = take.image(name, f"bar{b:02d}")
+        if loaded is None:
             continue
         images += 1
-        grey = _grey(path)
-        bg, sigma = background_and_noise(grey)
+        grey, bg, sigma = loaded
         white = float(grey.max()) if np.mean(grey >= grey.max() * (1 - 1e-4)) * grey.size >= 4 else None
         for (cname, k), sil in sil_of.items():
             if cname != name:
@@ -222,10 +244,16 @@ def _solve_bar(b: int, cams: dict[str, Camera], capture: Path, sil_of: dict[tupl
                               radius)
             if hit is None or hit[2] > params.max_incidence_deg:
                 continue
-            if hl.saturated:
+            if hl.saturated and take.has_windows(name):
+                saturated_in_windows += 1
+            elif hl.saturated:
                 seen_saturated += 1
-            rays.append((hit[0], hit[1], hl, cam, centre_for[(name, k)]))
-    info: dict = {"images": images, "highlights": len(rays), "saturated": seen_saturated}
+            rays.append((hit[0], hit[1], hl, cam, centre_for[(name, k)], hit[2]))
+    info: dict = {"images": images, "highlights": len(rays), "saturated": seen_saturated + saturated_in_windows}
+    if saturated_in_windows:
+        # at native resolution the sub-pixel streak fills more of a pixel and may clip; clipping is
+        # symmetric across the streak, so its ridge (which places the bar) is unbiased
+        log.info("bar %d: %d highlight(s) clipped at the white level in the native windows", b, saturated_in_windows)
     if seen_saturated:
         log.warning("bar %d: %d highlight(s) over-exposed (clipped at the white level); centroids are less "
                     "accurate: lower the exposure of the mirror take", b, seen_saturated)
@@ -241,12 +269,13 @@ def _solve_bar(b: int, cams: dict[str, Camera], capture: Path, sil_of: dict[tupl
     if conditioning(dirs) < 1e-4:
         info["error"] = "its reflected rays are nearly parallel (cannot triangulate)"
         return None, info
-    centre, weights = robust_closest_point(points, dirs)
+    prior = _incidence_weights(np.array([r[5] for r in rays]), params.incidence_weight_power)
+    centre, weights = robust_closest_point(points, dirs, prior=prior)
     dist = ray_distances(centre, points, dirs)
     axis, length, elongated = _axis_and_length(rays, centre, radius, params.min_elongation)
     method = "centroids"
     if elongated >= params.min_rays:
-        refined = _refine_with_endpoints(rays, centre, axis, radius, params.centre_from)
+        refined = _refine_with_endpoints(rays, centre, axis, radius, params)
         if refined is not None:
             centre, axis, length, dist, weights = refined
             method = "streak ends"
@@ -255,7 +284,7 @@ def _solve_bar(b: int, cams: dict[str, Camera], capture: Path, sil_of: dict[tupl
                 ball_px = float(np.median([sil.radius_px for sil in sil_of.values()]))
                 mode = "offset" if ball_px >= params.line_fit_min_ball_px else "off"
             if mode != "off":
-                fitted = _fit_bar_line(rays, centre, axis, radius, mode == "line")
+                fitted = _fit_bar_line(rays, centre, axis, radius, mode == "line", params)
                 if fitted is not None:
                     centre, axis, dist, weights = fitted
                     method = "ridge line fit"
@@ -269,7 +298,13 @@ def _solve_bar(b: int, cams: dict[str, Camera], capture: Path, sil_of: dict[tupl
     return entry, info
 
 
-def _fit_bar_line(rays, centre: np.ndarray, axis: np.ndarray, radius: float, free_axis: bool):
+def _incidence_weights(incidence_deg: np.ndarray, power: float) -> np.ndarray:
+    """Per-ray weights cos(incidence)^power [N]: grazing reflections are the least certain."""
+    return np.cos(np.radians(np.asarray(incidence_deg, float))) ** power
+
+
+def _fit_bar_line(rays, centre: np.ndarray, axis: np.ndarray, radius: float, free_axis: bool,
+                  params: LightcalParams):
     """Least-squares bar line from the rays reflected at points along every highlight's ridge.
 
     Each ridge point's reflected ray meets the bar's axis line somewhere along it; the mid-streak
@@ -283,18 +318,20 @@ def _fit_bar_line(rays, centre: np.ndarray, axis: np.ndarray, radius: float, fre
 
     from stages.lightcal.solve import ray_line_distances
 
-    origins, dirs = [], []
-    for _, _, hl, cam, ball in rays:
+    origins, dirs, incidence = [], [], []
+    for _, _, hl, cam, ball, _ in rays:
         if hl.ridge_px is None or len(hl.ridge_px) < 3:
             continue
-        for uv in hl.ridge_px:
-            hit = reflect_ray(cam, uv, ball, radius)
-            if hit is not None:
-                origins.append(hit[0])
-                dirs.append(hit[1])
-    if len(origins) < 12:
+        hit, p, refl, inc = reflect_rays(cam, hl.ridge_px, ball, radius)
+        keep = hit & (np.nan_to_num(inc, nan=90.0) <= params.max_incidence_deg)
+        origins.append(p[keep])
+        dirs.append(refl[keep])
+        incidence.append(inc[keep])
+    if sum(len(o) for o in origins) < 12:
         return None
-    o, d = np.stack(origins), np.stack(dirs)  # [M, 3]
+    o, d = np.concatenate(origins), np.concatenate(dirs)  # [M, 3]
+    # residuals scaled by sqrt(weight): least squares with cos^power weights
+    sqrt_w = np.sqrt(_incidence_weights(np.concatenate(incidence), params.incidence_weight_power))  # [M]
     # a frame around the current line: u, v across it
     u = np.cross(axis, [1.0, 0.0, 0.0] if abs(axis[0]) < 0.9 else [0.0, 1.0, 0.0])
     u /= np.linalg.norm(u)
@@ -308,7 +345,7 @@ def _fit_bar_line(rays, centre: np.ndarray, axis: np.ndarray, radius: float, fre
 
     def residual(x: np.ndarray) -> np.ndarray:
         p, a = line(x)
-        return ray_line_distances(o, d, p, a)
+        return sqrt_w * ray_line_distances(o, d, p, a)
 
     n_free = 4 if free_axis else 2
     fit = least_squares(residual, np.zeros(n_free), loss="soft_l1", f_scale=0.003, x_scale=0.01)
@@ -321,10 +358,11 @@ def _fit_bar_line(rays, centre: np.ndarray, axis: np.ndarray, radius: float, fre
     dirs_mid = np.stack([r[1] for r in rays])
     dist = ray_line_distances(points, dirs_mid, p, a)
     w = 1.0 / (1.0 + (dist / (2 * 1.4826 * max(float(np.median(dist)), 1e-6))) ** 2)
+    w = w * _incidence_weights(np.array([r[5] for r in rays]), params.incidence_weight_power)
     return p, a, dist, w
 
 
-def _refine_with_endpoints(rays, centre: np.ndarray, axis: np.ndarray, radius: float, centre_from: str):
+def _refine_with_endpoints(rays, centre: np.ndarray, axis: np.ndarray, radius: float, params: LightcalParams):
     """Slide the centre along the bar to halfway between the images of its ends; axis from the ends.
 
     The point nearest the mid-streak rays is right across the bar but may sit off its middle
@@ -335,13 +373,15 @@ def _refine_with_endpoints(rays, centre: np.ndarray, axis: np.ndarray, radius: f
     """
     from stages.lightcal.solve import closest_param_on_line
 
-    ends = []
-    for p, d, hl, cam, ball in rays:
+    centre_from = params.centre_from
+    ends, end_weights = [], []
+    for p, d, hl, cam, ball, _ in rays:
         if hl.endpoints_px is None:
             continue
         hits = [reflect_ray(cam, e, ball, radius) for e in hl.endpoints_px]
         if all(h is not None for h in hits):
             ends.append((np.stack([h[0] for h in hits]), np.stack([h[1] for h in hits])))
+            end_weights.append(_incidence_weights(np.array([h[2] for h in hits]), params.incidence_weight_power))
     if len(ends) < 2:
         return None
     # axis: the scatter of end-to-end directions (sign-free), through the current centre
@@ -355,14 +395,15 @@ def _refine_with_endpoints(rays, centre: np.ndarray, axis: np.ndarray, radius: f
         scatter = sum(np.outer(v, v) for v in vecs)
         axis = np.linalg.eigh(scatter)[1][:, -1]
     # triangulate the bar's two ends: label each view's end rays by the side of the centre they meet
-    end_rays: dict[int, list[tuple[np.ndarray, np.ndarray]]] = {0: [], 1: []}
-    for pts, dirs in ends:
+    end_rays: dict[int, list[tuple[np.ndarray, np.ndarray, float]]] = {0: [], 1: []}
+    for (pts, dirs), ew in zip(ends, end_weights):
         sp = closest_param_on_line(pts, dirs, centre, axis)
         order = (0, 1) if sp[0] < sp[1] else (1, 0)
         for side, k in zip(order, (0, 1)):
-            end_rays[side].append((pts[k], dirs[k]))
+            end_rays[side].append((pts[k], dirs[k], float(ew[k])))
     end_points = [robust_closest_point(np.stack([e[0] for e in end_rays[side]]),
-                                       np.stack([e[1] for e in end_rays[side]]))[0] for side in (0, 1)]
+                                       np.stack([e[1] for e in end_rays[side]]),
+                                       prior=np.array([e[2] for e in end_rays[side]]))[0] for side in (0, 1)]
     v = end_points[1] - end_points[0]
     length = float(np.linalg.norm(v))
     if centre_from == "ends":
@@ -375,6 +416,7 @@ def _refine_with_endpoints(rays, centre: np.ndarray, axis: np.ndarray, radius: f
     dirs_all = np.stack([r[1] for r in rays])
     dist = ray_line_distances(points, dirs_all, centre_new, axis)
     w = 1.0 / (1.0 + (dist / (2 * 1.4826 * max(float(np.median(dist)), 1e-6))) ** 2)
+    w = w * _incidence_weights(np.array([r[5] for r in rays]), params.incidence_weight_power)
     if axis[np.argmax(np.abs(axis))] < 0:
         axis = -axis
     return centre_new, axis, length, dist, w
@@ -389,7 +431,7 @@ def _axis_and_length(rays, centre: np.ndarray, radius: float, min_elongation: fl
     length L has sigma L / sqrt(12)).
     """
     dirs, sigmas, weights = [], [], []
-    for _, _, hl, cam, ball in rays:
+    for _, _, hl, cam, ball, _ in rays:
         if hl.sigma_major_px < min_elongation * max(hl.sigma_minor_px, 1e-6):
             continue
         ends = []

@@ -84,3 +84,62 @@ def test_takes_write_the_contracted_files(tmp_path):
     assert len(poses) == 3
     spheres = json.loads((tmp_path / "truth" / "mirror_spheres.json").read_text())
     assert len(spheres["centers_world"]) == 4
+
+
+def test_native_box_maps_coarse_pixels_onto_the_native_grid():
+    from hardware.studio.calibration_takes import native_box
+
+    # coarse pixel 10 spans [9.5, 10.5], at 3.2x native [31.5, 34.7] (pixel centres): native pixels 32..35
+    box = native_box((10, 20, 11, 21), 3.2, 0, 1000, 1000)
+    assert box == (32, 64, 36, 68)
+    assert native_box((0, 0, 5, 5), 3.2, 4, 12, 12) == (0, 0, 12, 12)  # clipped to the image
+
+
+def test_window_render_matches_the_full_render_and_holds_the_highlight():
+    from hardware.studio.calibration_takes import detect_windows, render_mirror_rois, render_mirror_window
+
+    cam = _camera(dist=(0.0, 0.0, 0.0, 0.0, 0.0))
+    spheres = MirrorSpheresConfig(radius_m=0.04, offsets_m=((0.0, 0.0, 0.0),))
+    bar = BarLight(0, np.array([0.2, 0.3, 1.2]), np.array([1.0, 0.0, 0.0]), 0.3)
+    # the same sub-pixel rays in both paths: the window is exactly that part of the full image
+    params = CalibrationTakeParams(noise=0.0, blur_px=0.0, mirror_supersample=3, roi_coarse_supersample=3,
+                                   highlight_supersample=8, roi_highlight_supersample=8)
+    full = render_mirror_images(cam, np.zeros((1, 3)), spheres, [bar], params, np.random.default_rng(0))
+    boxes = detect_windows(full["bar00"].mean(-1) + np.random.default_rng(1).normal(0, 1e-3, (240, 320)), 6.0)
+    assert len(boxes) == 1
+    x0, y0, x1, y1 = boxes[0]
+    box = (x0 - 3, y0 - 3, x1 + 3, y1 + 3)
+    window = render_mirror_window(cam, box, np.zeros((1, 3)), spheres, bar, params)
+    np.testing.assert_allclose(window, full["bar00"][box[1]:box[3], box[0]:box[2], 0], atol=1e-6)
+    room = render_mirror_window(cam, box, np.zeros((1, 3)), spheres, None, params)
+    np.testing.assert_allclose(room, full["room"][box[1]:box[3], box[0]:box[2], 0], atol=1e-6)
+    # at twice the resolution the windows hold all of the highlight's light and the whole ball
+    native = cam.scaled(2.0)
+    coarse = {k: v + np.random.default_rng(2).normal(0, 1e-3, v.shape).astype(np.float32) for k, v in full.items()}
+    rois = render_mirror_rois(native, coarse, np.zeros((1, 3)), spheres, [bar], params, np.random.default_rng(3))
+    assert len(rois["bar00"]) == 1 and len(rois["room"]) == 1
+    hi = render_mirror_images(native, np.zeros((1, 3)), spheres, [bar], params, np.random.default_rng(0))
+    (bx0, by0, bx1, by1), img = rois["bar00"][0]
+    np.testing.assert_allclose(img, hi["bar00"][by0:by1, bx0:bx1], atol=1e-6)
+    outside = hi["bar00"][..., 0].copy()
+    outside[by0:by1, bx0:bx1] = 0.0
+    assert outside.max() <= params.background + 1e-6  # no highlight light outside the window
+    (rx0, ry0, rx1, ry1), _ = rois["room"][0]
+    lit = np.argwhere(hi["room"][..., 0] > params.background + 1e-6)
+    assert lit[:, 0].min() >= ry0 and lit[:, 0].max() < ry1 and lit[:, 1].min() >= rx0 and lit[:, 1].max() < rx1
+
+
+def test_takes_write_native_windows_with_their_index(tmp_path):
+    from hardware.studio.calibration_takes import render_mirror_take
+
+    cam = _camera()
+    bars = [BarLight(3, np.array([0.3, 0.5, 1.0]), np.array([1.0, 0.0, 0.0]), 0.3)]
+    params = CalibrationTakeParams(mirror_supersample=2, highlight_supersample=4, roi_highlight_supersample=4)
+    seconds = render_mirror_take([cam], bars, tmp_path / "cap", tmp_path / "truth", params, roi_cameras=[cam.scaled(2)])
+    assert seconds["windows_s"] > 0
+    index = json.loads((tmp_path / "cap" / "calib" / "mirror_roi.json").read_text())
+    assert (index["width"], index["height"]) == (640, 480)
+    assert len(index["cameras"]["cam00"]["room"]) == 4 and len(index["cameras"]["cam00"]["bar03"]) >= 3
+    for win in index["cameras"]["cam00"]["bar03"]:
+        x0, y0, x1, y1 = win["box"]
+        assert read_exr(tmp_path / "cap" / "calib" / "mirror_roi" / "cam00" / win["file"]).shape == (y1 - y0, x1 - x0, 3)

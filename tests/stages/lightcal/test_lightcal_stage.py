@@ -35,10 +35,12 @@ def placed(calib_capture, tmp_path_factory):
 
 
 def test_accuracy_against_ground_truth(placed):
-    # 5 cameras at 240x320 give ~18 highlights per bar; the full rig does better (bench_calibration.py)
+    # 5 cameras at 240x320 with 384x512 windows give ~18 highlights per bar (~22 mm mean, ~39 mm max);
+    # native windows do much better (test_windows.py, bench_lightcal.py)
     assert placed["bars"] == 3 and placed["spheres"] == 4
-    assert placed["bar_center_err_mm_mean"] <= 60.0
-    assert placed["bar_center_err_mm_max"] <= 100.0
+    assert placed["cameras_with_windows"] == 5
+    assert placed["bar_center_err_mm_mean"] <= 35.0
+    assert placed["bar_center_err_mm_max"] <= 60.0
     assert placed["bar_axis_err_deg_max"] <= 5.0
     assert placed["residual_mm_mean"] <= 25.0
 
@@ -60,10 +62,16 @@ def test_spheres_are_located_to_a_fraction_of_a_millimetre(placed, calib_capture
     assert max(err) < 0.5e-3
 
 
+def _mirror_images(capture: Path, name: str) -> list[Path]:
+    """The full images ``calib/mirror/*/<name>.exr`` and their native windows (``calib/mirror_roi``)."""
+    return (sorted((capture / "calib" / "mirror").glob(f"*/{name}.exr"))
+            + sorted((capture / "calib" / "mirror_roi").glob(f"*/{name}_*.exr")))
+
+
 def test_bar_never_lit_fails_naming_it_or_is_left_out(calib_capture, tmp_path):
     capture, truth = calib_capture
     capture = Path(shutil.copytree(capture, tmp_path / "capture"))
-    for path in (capture / "calib" / "mirror").glob("*/bar09.exr"):
+    for path in _mirror_images(capture, "bar09"):
         img = read_exr(path)
         write_exr(path, np.full_like(img, float(np.median(img))))
     with pytest.raises(InputError, match="bar 9: highlight found in only 0"):
@@ -78,7 +86,7 @@ def test_overexposed_highlights_warn_and_still_place_the_bar(calib_capture, tmp_
     for path in (capture / "calib" / "mirror").glob("*/bar20.exr"):
         write_exr(path, np.minimum(read_exr(path) * 6.0, 1.0))  # clipped at the sensor's white level
     with caplog.at_level(logging.WARNING):
-        m = _run(capture, truth, truth, tmp_path / "w")
+        m = _run(capture, truth, truth, tmp_path / "w", use_windows=False)
     assert "bar 20:" in caplog.text and "over-exposed" in caplog.text
     assert m["bars"] == 3 and m["bar_center_err_mm_max"] <= 150.0
 
@@ -86,7 +94,7 @@ def test_overexposed_highlights_warn_and_still_place_the_bar(calib_capture, tmp_
 def test_no_balls_in_view_fails_clearly(calib_capture, tmp_path):
     capture, truth = calib_capture
     capture = Path(shutil.copytree(capture, tmp_path / "capture"))
-    for path in (capture / "calib" / "mirror").glob("*/room.exr"):
+    for path in _mirror_images(capture, "room"):
         write_exr(path, np.full_like(read_exr(path), 0.01))
     with pytest.raises(InputError, match="no mirror ball was found"):
         run_stage_for_test(STAGE, tmp_path / "w", inputs={"capture": capture, "calibrate": truth})
