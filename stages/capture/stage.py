@@ -81,6 +81,10 @@ class CaptureParams(StageParams):
     calibration_mirror_scale: float | None = Field(
         None, gt=0, le=2, description="Resolution of the mirror-sphere take, times the rig's reference resolution; "
         "None = the performance's image_scale. 1.0 places the bars to a few mm but renders ~10x slower.")
+    calibration_mirror_windows: bool = Field(
+        True, description="Re-render small windows around each mirror-sphere highlight at the cameras' native "
+        "resolution (region-of-interest readout), which light calibration uses to place the bars to a few mm; "
+        "False = the low-resolution mirror images only (bars ~20 mm off).")
     strip_camera: str = Field("cam00", description="Camera whose consecutive frames make strip.png.")
     strip_frames: int = Field(12, ge=1, description="Frames in strip.png.")
 
@@ -326,7 +330,8 @@ def _calibration_takes(ctx: StageContext, params: CaptureParams, cameras, truth:
         raise ConfigError(f"configs/rig.yaml: bad 'calibration' section ({err})") from err
     bars = [BarLight(b.id, b.center_world, b.axis_world, b.length_m, b.intensity) for b in rig.light_bars()]
     take_params = CalibrationTakeParams(poses=params.calibration_poses, seed=params.noise_seed,
-                                        volume_center_m=tuple(rig.head_center_m))
+                                        volume_center_m=tuple(rig.head_center_m),
+                                        mirror_roi=params.calibration_mirror_windows)
     with ctx.progress(2 * len(cameras), "calibration takes") as progress:
         board_cameras = {c.name: c for c in rig.cameras_at(params.calibration_image_scale)}
         mirror_cameras = None
