@@ -18,6 +18,11 @@ and each bar's highlights read out at the sensor's native resolution (``render_m
 Ground truth (the board poses, the sphere centres) goes to ``truth_dir`` as
 ``calib_board_poses.json`` and ``mirror_spheres.json``.
 
+The work is planned as independent items, one per camera and take (``plan_calibration_takes``:
+``BoardTakeItem``, ``MirrorTakeItem``), each rendered by ``render_take_item`` into the bytes of
+its files and written by ``TakeWriter``; the capture stage fans the items out and caches them
+one by one, ``render_calibration_takes`` runs them here. Either way the files are the same bytes.
+
 Board frame (OpenCV's ChArUco convention): origin at the chessboard's top-left corner,
 x along the squares to the right, y down the printed page, z into the board; a camera
 looking at the printed side sees the board's +z pointing away from it.
@@ -519,31 +524,256 @@ def render_mirror_rois(native_cam: Camera, coarse_images: dict[str, np.ndarray],
     return out
 
 
-def write_mirror_rois(calib: Path, cam_name: str, native_cam: Camera,
-                      rois: dict[str, list[tuple[tuple[int, int, int, int], np.ndarray]]], index: dict) -> None:
-    """Write one camera's windows as ``calib/mirror_roi/<cam>/<name>_<k:02d>.exr`` and record them in ``index``.
+# ---- the take, one item per camera and take -----------------------------------------------
+#
+# Camera ``i`` draws all its sensor noise from one generator seeded ``[seed, i]``: first its
+# board images (in pose order), then its mirror images. Each camera's board take and mirror
+# take are separate items (``BoardTakeItem``, ``MirrorTakeItem``) so they can run on different
+# workers and be cached apart; the mirror item replays the board take's noise draws
+# (``skip_board_noise``: cheap, no rendering) to start from the same generator state, which
+# keeps the images bit for bit those of one sequential pass.
 
-    ``index`` is the ``calib/mirror_roi.json`` content being built (``{"width", "height", "cameras"}``).
-    """
-    cdir = calib / "mirror_roi" / cam_name
-    cdir.mkdir(parents=True, exist_ok=True)
-    entry = {}
-    for name, windows in rois.items():
-        files = []
-        for k, (box, img) in enumerate(windows):
-            file = f"{name}_{k:02d}.exr"
-            write_exr(cdir / file, img)
-            files.append({"file": file, "box": list(box)})
-        entry[name] = files
-    index.setdefault("width", native_cam.width)
-    index.setdefault("height", native_cam.height)
-    index.setdefault("cameras", {})[cam_name] = entry
+# Fields of ``CalibrationTakeParams`` that only one of the two takes reads (the rest count for both).
+BOARD_ONLY_FIELDS = frozenset({"poses", "supersample", "volume_half_extent_m", "max_tilt_deg", "board_albedo_white",
+                               "board_albedo_black", "exposure"})
+MIRROR_ONLY_FIELDS = frozenset({"mirror_supersample", "highlight_supersample", "bar_radiance", "bar_width_m",
+                                "room_radiance", "mirror_roi", "roi_threshold_sigma", "roi_pad_px",
+                                "roi_coarse_supersample", "roi_highlight_supersample"})
 
-
-# ---- the take ---------------------------------------------------------------------------
 
 def _rigid_dict(x: Rigid) -> dict:
     return {"R": x.R.tolist(), "t": x.t.tolist()}
+
+
+def _bar_dict(bar: BarLight) -> dict:
+    normal = getattr(bar, "normal_world", None)
+    return {"id": int(bar.id), "center_world": np.asarray(bar.center_world, float).tolist(),
+            "axis_world": np.asarray(bar.axis_world, float).tolist(), "length_m": float(bar.length_m),
+            "intensity": float(bar.intensity),
+            "normal_world": None if normal is None else np.asarray(normal, float).tolist()}
+
+
+@dataclass(frozen=True)
+class BoardTakeItem:
+    """One camera's ChArUco take (picklable, for an executor): the poses it sees, at the board resolution."""
+
+    camera_index: int  # position in the rig's camera list: seeds the camera's noise ``[seed, camera_index]``
+    camera: Camera  # at the board take's resolution
+    poses: tuple[Rigid, ...]  # every pose of the take, world_from_board; file k = pose k
+    board: CharucoBoardConfig
+    params: CalibrationTakeParams
+    kind: str = "board"
+
+    def dependencies(self) -> dict:
+        """Everything the item's files depend on, as JSON values (the render code aside)."""
+        return {"camera_index": self.camera_index, "camera": self.camera.to_dict(),
+                "poses": [_rigid_dict(p) for p in self.poses], "board": self.board.model_dump(mode="json"),
+                "params": self.params.model_dump(mode="json", exclude=set(MIRROR_ONLY_FIELDS))}
+
+
+@dataclass(frozen=True)
+class MirrorTakeItem:
+    """One camera's mirror-sphere take, all bars, and its native windows (picklable, for an executor)."""
+
+    camera_index: int  # seeds the camera's noise ``[seed, camera_index]`` (and ``[seed, camera_index, 1]``)
+    camera: Camera  # at the mirror take's resolution
+    roi_camera: Camera | None  # at the sensor's native resolution, for the windows; None: no windows
+    sphere_centers_world: np.ndarray  # [K, 3]
+    spheres: MirrorSpheresConfig
+    bars: tuple[BarLight, ...]
+    params: CalibrationTakeParams
+    board_noise_draws: tuple[int, int, int] = (0, 0, 0)  # (images, height, width) the board take drew first
+    kind: str = "mirror"
+
+    def dependencies(self) -> dict:
+        """Everything the item's files depend on, as JSON values (the render code aside)."""
+        return {"camera_index": self.camera_index, "camera": self.camera.to_dict(),
+                "roi_camera": None if self.roi_camera is None else self.roi_camera.to_dict(),
+                "sphere_centers_world": np.asarray(self.sphere_centers_world, float).tolist(),
+                "spheres": self.spheres.model_dump(mode="json"), "bars": [_bar_dict(b) for b in self.bars],
+                "params": self.params.model_dump(mode="json", exclude=set(BOARD_ONLY_FIELDS)),
+                "board_noise_draws": list(self.board_noise_draws)}
+
+
+@dataclass(frozen=True)
+class CalibrationPlan:
+    """What the calibration takes shoot: the board poses, the ball centres and the per-camera items."""
+
+    board: CharucoBoardConfig
+    spheres: MirrorSpheresConfig
+    bars: tuple[BarLight, ...]
+    poses: tuple[Rigid, ...]  # world_from_board, pose 0 = the fixture
+    sphere_centers_world: np.ndarray  # [K, 3]
+    items: tuple[BoardTakeItem | MirrorTakeItem, ...]  # per camera, in camera order: board (if any), mirror
+
+
+def skip_board_noise(rng: np.random.Generator, draws: tuple[int, int, int], params: CalibrationTakeParams) -> None:
+    """Advance ``rng`` past the noise the board take drew: ``draws`` = (images, height, width).
+
+    Exactly ``_sensor``'s draws, without rendering (the normal sampler's bit use varies, so
+    the draws are made, not counted).
+    """
+    images, height, width = draws
+    if params.noise > 0:
+        for _ in range(images):
+            rng.normal(0.0, params.noise, size=(height, width))
+
+
+def plan_calibration_takes(cameras: Sequence[Camera], bars: Sequence[BarLight], params: CalibrationTakeParams,
+                           board: CharucoBoardConfig = CharucoBoardConfig(),
+                           spheres: MirrorSpheresConfig = MirrorSpheresConfig(),
+                           board_cameras: Sequence[Camera] | None = None,
+                           mirror_cameras: Sequence[Camera] | None = None,
+                           roi_cameras: Sequence[Camera] | None = None, with_board: bool = True) -> CalibrationPlan:
+    """The board poses, ball centres and per-camera items of the takes (arguments as ``render_calibration_takes``).
+
+    ``with_board=False``: the mirror take alone (no board items; the mirror noise then starts
+    from the camera's fresh generator).
+    """
+    mirror_cameras = list(cameras) if mirror_cameras is None else list(mirror_cameras)
+    if [c.name for c in mirror_cameras] != [c.name for c in cameras]:
+        raise ValueError("mirror_cameras must be the same cameras as cameras, in the same order")
+    board_cameras = list(cameras) if board_cameras is None else list(board_cameras)
+    if [c.name for c in board_cameras] != [c.name for c in cameras]:
+        raise ValueError("board_cameras must be the same cameras as cameras, in the same order")
+    roi_cameras = board_cameras if roi_cameras is None else list(roi_cameras)
+    if [c.name for c in roi_cameras] != [c.name for c in cameras]:
+        raise ValueError("roi_cameras must be the same cameras as cameras, in the same order")
+    poses: tuple[Rigid, ...] = ()
+    if with_board:
+        poses = tuple(sample_board_poses(board, cameras, params, np.random.default_rng(params.seed)))
+    sphere_centers = np.asarray(params.volume_center_m, float) + np.asarray(spheres.offsets_m, float)
+    items: list[BoardTakeItem | MirrorTakeItem] = []
+    for ci, (mirror_cam, board_cam, roi_cam) in enumerate(zip(mirror_cameras, board_cameras, roi_cameras)):
+        draws = (0, 0, 0)
+        if with_board:
+            items.append(BoardTakeItem(ci, board_cam, poses, board, params))
+            seen = sum(board_visible(board_cam, pose, board) for pose in poses)
+            draws = (int(seen), board_cam.height, board_cam.width)
+        windows = params.mirror_roi and roi_cam.width > mirror_cam.width
+        items.append(MirrorTakeItem(ci, mirror_cam, roi_cam if windows else None, sphere_centers, spheres,
+                                    tuple(bars), params, draws))
+    return CalibrationPlan(board, spheres, tuple(bars), poses, sphere_centers, tuple(items))
+
+
+def _exr_bytes(img: np.ndarray) -> np.ndarray:
+    """The bytes ``write_exr`` puts in a file, as uint8 [N] (so a cached image is written byte for byte)."""
+    import os
+    import tempfile
+
+    handle, name = tempfile.mkstemp(suffix=".exr")
+    os.close(handle)
+    try:
+        write_exr(name, img)
+        return np.frombuffer(Path(name).read_bytes(), np.uint8)
+    finally:
+        os.unlink(name)
+
+
+def render_take_item(item: BoardTakeItem | MirrorTakeItem) -> dict:
+    """Render one camera's board or mirror take; returns its files (not written).
+
+    Returns ``{"kind", "camera", "files": {path under calib/: EXR bytes uint8 [N]}, "seconds"}``;
+    a mirror item also has ``"windows"``: ``{name: [{"file", "box"}]}`` (None without windows),
+    ``"native_size"`` [w, h] and ``"seconds_windows"``.
+    """
+    import time
+
+    start = time.perf_counter()
+    cam, params = item.camera, item.params
+    files: dict[str, np.ndarray] = {}
+    rng = np.random.default_rng([params.seed, item.camera_index])
+    if isinstance(item, BoardTakeItem):
+        tex, margin = board_texture(item.board)
+        rays = None
+        for k, pose in enumerate(item.poses):
+            if not board_visible(cam, pose, item.board):
+                continue
+            if rays is None:  # a camera that sees no pose casts no rays
+                rays = _supersampled_rays(cam, params.supersample)
+            img = render_board_image(cam, pose, item.board, tex, margin, params, rng, rays)
+            files[f"charuco/{cam.name}/{k:04d}.exr"] = _exr_bytes(img)
+        return {"kind": "board", "camera": cam.name, "files": files, "seconds": time.perf_counter() - start}
+    skip_board_noise(rng, item.board_noise_draws, params)
+    coarse = render_mirror_images(cam, item.sphere_centers_world, item.spheres, item.bars, params, rng)
+    for name, img in coarse.items():
+        files[f"mirror/{cam.name}/{name}.exr"] = _exr_bytes(img)
+    coarse_s = time.perf_counter() - start
+    windows = None
+    if item.roi_camera is not None:
+        rois = render_mirror_rois(item.roi_camera, coarse, item.sphere_centers_world, item.spheres, item.bars,
+                                  params, np.random.default_rng([params.seed, item.camera_index, 1]))
+        windows = {}
+        for name, found in rois.items():
+            windows[name] = []
+            for k, (box, img) in enumerate(found):
+                file = f"{name}_{k:02d}.exr"
+                files[f"mirror_roi/{cam.name}/{file}"] = _exr_bytes(img)
+                windows[name].append({"file": file, "box": list(box)})
+    native = item.roi_camera or cam
+    return {"kind": "mirror", "camera": cam.name, "files": files, "windows": windows,
+            "native_size": [native.width, native.height], "seconds": coarse_s,
+            "seconds_windows": time.perf_counter() - start - coarse_s}
+
+
+def write_take_specs(plan: CalibrationPlan, out_dir: Path, truth_dir: Path) -> None:
+    """Write the takes' specs (``calib/board.json``, ``calib/mirror.json``) and their truth files.
+
+    Without board poses (a mirror take alone) only the mirror's files are written.
+    """
+    calib, truth_dir = Path(out_dir) / "calib", Path(truth_dir)
+    calib.mkdir(parents=True, exist_ok=True)
+    truth_dir.mkdir(parents=True, exist_ok=True)
+    if plan.poses:
+        (calib / "board.json").write_text(json.dumps({
+            **plan.board.spec(), "poses": len(plan.poses), "reference_pose_index": 0,
+            "world_from_board_reference": _rigid_dict(plan.poses[0]),
+            "note": "pose 0 is shot with the board in its fixture: its known pose defines the world frame",
+        }, indent=1))
+        (truth_dir / "calib_board_poses.json").write_text(json.dumps(
+            {"world_from_board": [_rigid_dict(p) for p in plan.poses]}, indent=1))
+    (calib / "mirror.json").write_text(json.dumps({
+        "radius_m": plan.spheres.radius_m, "count": len(plan.sphere_centers_world), "silhouette_image": "room.exr",
+        "bars": [int(b.id) for b in plan.bars]}, indent=1))
+    (truth_dir / "mirror_spheres.json").write_text(json.dumps(
+        {"radius_m": plan.spheres.radius_m, "centers_world": plan.sphere_centers_world.tolist()}, indent=1))
+
+
+class TakeWriter:
+    """Writes ``render_take_item`` results under ``calib/`` as they come, then the windows' index.
+
+    Feed it the items' results in plan order (``write``; ``pipeline.itemcache``'s ``consume``
+    signature), then call ``finish``.
+    """
+
+    def __init__(self, calib: Path) -> None:
+        self.calib = Path(calib)
+        self.roi_index: dict = {}
+
+    def write(self, position: int, result: dict) -> dict:
+        """Write one item's files; returns its summary ``{"kind", "camera", "images", "seconds"}``."""
+        cam = result["camera"]
+        folder = "charuco" if result["kind"] == "board" else "mirror"
+        (self.calib / folder / cam).mkdir(parents=True, exist_ok=True)  # also when the camera saw no board
+        if result["kind"] == "mirror" and result["windows"] is not None:
+            (self.calib / "mirror_roi" / cam).mkdir(parents=True, exist_ok=True)
+            width, height = result["native_size"]
+            self.roi_index.setdefault("width", int(width))
+            self.roi_index.setdefault("height", int(height))
+            self.roi_index.setdefault("cameras", {})[cam] = result["windows"]
+        for relative, data in result["files"].items():
+            path = self.calib / relative
+            path.parent.mkdir(parents=True, exist_ok=True)
+            path.write_bytes(np.asarray(data, np.uint8).tobytes())
+        return {"kind": result["kind"], "camera": cam, "images": len(result["files"]),
+                "seconds": float(result["seconds"]) + float(result.get("seconds_windows", 0.0))}
+
+    def finish(self) -> None:
+        """Write ``calib/mirror_roi.json`` when the mirror take has windows."""
+        if self.roi_index:
+            self.roi_index["note"] = ("native-resolution windows of the mirror take around the balls (room) and "
+                                      "each bar's highlights; box = [x0, y0, x1, y1] native pixels, exclusive ends")
+            (self.calib / "mirror_roi.json").write_text(json.dumps(self.roi_index, indent=1))
 
 
 def render_calibration_takes(cameras: Sequence[Camera], bars: Sequence[BarLight], out_dir: Path,
@@ -553,7 +783,7 @@ def render_calibration_takes(cameras: Sequence[Camera], bars: Sequence[BarLight]
                              progress=None, board_cameras: Sequence[Camera] | None = None,
                              mirror_cameras: Sequence[Camera] | None = None,
                              roi_cameras: Sequence[Camera] | None = None) -> None:
-    """Render the board and mirror-sphere takes for every camera into ``out_dir/calib``.
+    """Render the board and mirror-sphere takes for every camera into ``out_dir/calib`` (in this process).
 
     Args:
         cameras: the true cameras (the studio's, with distortion) at the performance resolution
@@ -576,93 +806,18 @@ def render_calibration_takes(cameras: Sequence[Camera], bars: Sequence[BarLight]
 
     With windows, ``calib/mirror_roi.json`` lists them: ``{"width", "height", "cameras": {cam:
     {"room" | "bar<b:02d>": [{"file", "box": [x0, y0, x1, y1]}, ...]}}}`` (native pixels, exclusive
-    ends), the images in ``calib/mirror_roi/<cam>/<file>``.
+    ends), the images in ``calib/mirror_roi/<cam>/<file>``. The work is ``plan_calibration_takes``'
+    items through ``render_take_item`` and ``TakeWriter``, as the capture stage fans them out.
     """
-    mirror_cameras = list(cameras) if mirror_cameras is None else list(mirror_cameras)
-    if [c.name for c in mirror_cameras] != [c.name for c in cameras]:
-        raise ValueError("mirror_cameras must be the same cameras as cameras, in the same order")
-    board_cameras = list(cameras) if board_cameras is None else list(board_cameras)
-    if [c.name for c in board_cameras] != [c.name for c in cameras]:
-        raise ValueError("board_cameras must be the same cameras as cameras, in the same order")
-    roi_cameras = board_cameras if roi_cameras is None else list(roi_cameras)
-    if [c.name for c in roi_cameras] != [c.name for c in cameras]:
-        raise ValueError("roi_cameras must be the same cameras as cameras, in the same order")
-    roi_index: dict = {}
-    out_dir, truth_dir = Path(out_dir), Path(truth_dir)
-    calib = out_dir / "calib"
-    calib.mkdir(parents=True, exist_ok=True)
-    truth_dir.mkdir(parents=True, exist_ok=True)
-    rng = np.random.default_rng(params.seed)
-    poses = sample_board_poses(board, cameras, params, rng)
-    tex, margin = board_texture(board)
-    ref = poses[0]
-    (calib / "board.json").write_text(json.dumps({
-        **board.spec(), "poses": len(poses), "reference_pose_index": 0,
-        "world_from_board_reference": _rigid_dict(ref),
-        "note": "pose 0 is shot with the board in its fixture: its known pose defines the world frame",
-    }, indent=1))
-    (truth_dir / "calib_board_poses.json").write_text(json.dumps(
-        {"world_from_board": [_rigid_dict(p) for p in poses]}, indent=1))
-    sphere_centers = _write_mirror_spec(calib, truth_dir, spheres, bars, params)
-    for ci, (cam, board_cam) in enumerate(zip(cameras, board_cameras)):
-        cam_rng = np.random.default_rng([params.seed, ci])
-        rays = None
-        cdir = calib / "charuco" / cam.name
-        cdir.mkdir(parents=True, exist_ok=True)
-        for k, pose in enumerate(poses):
-            if not board_visible(board_cam, pose, board):
-                continue
-            if rays is None:
-                rays = _supersampled_rays(board_cam, params.supersample)
-            img = render_board_image(board_cam, pose, board, tex, margin, params, cam_rng, rays)
-            write_exr(cdir / f"{k:04d}.exr", img)
-        del rays
+    plan = plan_calibration_takes(cameras, bars, params, board, spheres, board_cameras=board_cameras,
+                                  mirror_cameras=mirror_cameras, roi_cameras=roi_cameras)
+    write_take_specs(plan, out_dir, truth_dir)
+    writer = TakeWriter(Path(out_dir) / "calib")
+    for position, item in enumerate(plan.items):
+        writer.write(position, render_take_item(item))
         if progress is not None:
             progress.advance(1)
-        _render_camera_mirror_take(calib, ci, mirror_cameras[ci], roi_cameras[ci], sphere_centers, spheres, bars,
-                                   params, cam_rng, roi_index)
-        if progress is not None:
-            progress.advance(1)
-    _write_roi_index(calib, roi_index)
-
-
-def _write_mirror_spec(calib: Path, truth_dir: Path, spheres: MirrorSpheresConfig, bars: Sequence[BarLight],
-                       params: CalibrationTakeParams) -> np.ndarray:
-    """Write ``calib/mirror.json`` and the balls' truth; returns the ball centres [K, 3] (world)."""
-    sphere_centers = np.asarray(params.volume_center_m, float) + np.asarray(spheres.offsets_m, float)
-    (calib / "mirror.json").write_text(json.dumps({
-        "radius_m": spheres.radius_m, "count": len(sphere_centers), "silhouette_image": "room.exr",
-        "bars": [int(b.id) for b in bars]}, indent=1))
-    (truth_dir / "mirror_spheres.json").write_text(json.dumps(
-        {"radius_m": spheres.radius_m, "centers_world": sphere_centers.tolist()}, indent=1))
-    return sphere_centers
-
-
-def _render_camera_mirror_take(calib: Path, ci: int, mirror_cam: Camera, roi_cam: Camera, sphere_centers: np.ndarray,
-                               spheres: MirrorSpheresConfig, bars: Sequence[BarLight], params: CalibrationTakeParams,
-                               rng: np.random.Generator, roi_index: dict) -> tuple[float, float]:
-    """One camera's mirror take (full images, then its native windows); (seconds full, seconds windows)."""
-    import time
-
-    start = time.perf_counter()
-    mdir = calib / "mirror" / mirror_cam.name
-    mdir.mkdir(parents=True, exist_ok=True)
-    coarse = render_mirror_images(mirror_cam, sphere_centers, spheres, bars, params, rng)
-    for name, img in coarse.items():
-        write_exr(mdir / f"{name}.exr", img)
-    coarse_s = time.perf_counter() - start
-    if params.mirror_roi and roi_cam.width > mirror_cam.width:
-        rois = render_mirror_rois(roi_cam, coarse, sphere_centers, spheres, bars, params,
-                                  np.random.default_rng([params.seed, ci, 1]))
-        write_mirror_rois(calib, mirror_cam.name, roi_cam, rois, roi_index)
-    return coarse_s, time.perf_counter() - start - coarse_s
-
-
-def _write_roi_index(calib: Path, roi_index: dict) -> None:
-    if roi_index:
-        roi_index["note"] = ("native-resolution windows of the mirror take around the balls (room) and each bar's "
-                             "highlights; box = [x0, y0, x1, y1] native pixels, exclusive ends")
-        (calib / "mirror_roi.json").write_text(json.dumps(roi_index, indent=1))
+    writer.finish()
 
 
 def render_mirror_take(cameras: Sequence[Camera], bars: Sequence[BarLight], out_dir: Path, truth_dir: Path,
@@ -675,23 +830,19 @@ def render_mirror_take(cameras: Sequence[Camera], bars: Sequence[BarLight], out_
     seeds as in ``render_calibration_takes``, but the images differ (there the board take
     draws first). Returns the seconds spent on the full images and on the windows.
     """
-    roi_cameras = list(cameras) if roi_cameras is None else list(roi_cameras)
-    if [c.name for c in roi_cameras] != [c.name for c in cameras]:
-        raise ValueError("roi_cameras must be the same cameras as cameras, in the same order")
-    calib, truth_dir = Path(out_dir) / "calib", Path(truth_dir)
-    calib.mkdir(parents=True, exist_ok=True)
-    truth_dir.mkdir(parents=True, exist_ok=True)
-    sphere_centers = _write_mirror_spec(calib, truth_dir, spheres, bars, params)
-    roi_index: dict = {}
+    plan = plan_calibration_takes(cameras, bars, params, spheres=spheres, mirror_cameras=cameras,
+                                  roi_cameras=list(cameras) if roi_cameras is None else roi_cameras,
+                                  with_board=False)
+    write_take_specs(plan, out_dir, truth_dir)
+    writer = TakeWriter(Path(out_dir) / "calib")
     seconds = {"full_s": 0.0, "windows_s": 0.0}
-    for ci, (cam, roi_cam) in enumerate(zip(cameras, roi_cameras)):
-        full_s, windows_s = _render_camera_mirror_take(calib, ci, cam, roi_cam, sphere_centers, spheres, bars, params,
-                                                       np.random.default_rng([params.seed, ci]), roi_index)
-        seconds["full_s"] += full_s
-        seconds["windows_s"] += windows_s
-    _write_roi_index(calib, roi_index)
+    for position, item in enumerate(plan.items):
+        result = render_take_item(item)
+        writer.write(position, result)
+        seconds["full_s"] += result["seconds"]
+        seconds["windows_s"] += result["seconds_windows"]
+    writer.finish()
     return seconds
-
 
 
 def takes_from_rig(rig) -> tuple[CharucoBoardConfig, MirrorSpheresConfig]:

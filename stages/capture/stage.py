@@ -19,6 +19,9 @@ labeller what it knows.
 The virtual studio renders trigger pulses through ``ctx.executor``, one cached item per pulse
 (``stages.capture.virtual``, ``pipeline.itemcache``): a longer take renders only its new pulses
 (metrics ``render_pulses_reused``, ``render_pulses_computed``), the rest are copied byte for byte.
+The calibration takes are cached per camera and take likewise (``calibration_items_reused``,
+``calibration_items_computed``; per take ``calibration_board_items_computed``,
+``calibration_mirror_items_computed``).
 """
 
 from __future__ import annotations
@@ -219,8 +222,7 @@ def _virtual_capture(ctx: StageContext, params: CaptureParams) -> dict:
     (ctx.out / "scans").mkdir()
     np.savez_compressed(ctx.out / "scans" / "scans.npz", names=np.array(names), vertices=scan_verts, faces=faces)
 
-    if params.calibration_takes:
-        _calibration_takes(ctx, params, cameras, truth)
+    calibration_metrics = _calibration_takes(ctx, params, cameras, truth) if params.calibration_takes else {}
 
     _write_truth(truth, rig, cameras, subject, performance, session.lit_per_pulse, streams, settings, params)
     total_rays = sum(r["rays"] for r in results)
@@ -231,7 +233,7 @@ def _virtual_capture(ctx: StageContext, params: CaptureParams) -> dict:
         # Images rendered by this run (pulses reused from the per-item cache took no time now).
         "images_per_second": sum(r["images"] for r in rendered_now) / max(render_s, 1e-9),
         "image_width_px": cameras[0].width, "image_height_px": cameras[0].height,
-        "controller_log_entries": len(log_json),
+        "controller_log_entries": len(log_json), **calibration_metrics,
     }}
 
 
@@ -318,9 +320,13 @@ def _label_and_place(ctx: StageContext, fps: float, cam_names: list[str], n_bars
     return manifest, metrics
 
 
-def _calibration_takes(ctx: StageContext, params: CaptureParams, cameras, truth: Path) -> None:
+def _calibration_takes(ctx: StageContext, params: CaptureParams, cameras, truth: Path) -> dict:
+    """Film the board and mirror takes, one cached item per camera and take; returns their metrics."""
     from hardware.studio.calibration_takes import (BarLight, CalibrationTakeParams, CharucoBoardConfig,
-                                                   MirrorSpheresConfig, render_calibration_takes)
+                                                   MirrorSpheresConfig, TakeWriter, plan_calibration_takes,
+                                                   render_take_item, write_take_specs)
+    from pipeline.itemcache import stage_item_cache
+    from stages.capture.virtual import CALIBRATION_CODE, calibration_item_key
 
     rig = params.rig
     try:
@@ -332,15 +338,26 @@ def _calibration_takes(ctx: StageContext, params: CaptureParams, cameras, truth:
     take_params = CalibrationTakeParams(poses=params.calibration_poses, seed=params.noise_seed,
                                         volume_center_m=tuple(rig.head_center_m),
                                         mirror_roi=params.calibration_mirror_windows)
-    with ctx.progress(2 * len(cameras), "calibration takes") as progress:
-        board_cameras = {c.name: c for c in rig.cameras_at(params.calibration_image_scale)}
-        mirror_cameras = None
-        if params.calibration_mirror_scale is not None:
-            by_name = {c.name: c for c in rig.cameras_at(params.calibration_mirror_scale)}
-            mirror_cameras = [by_name[c.name] for c in cameras]
-        render_calibration_takes(cameras, bars, ctx.out, truth, take_params, board, spheres, progress=progress,
-                                 board_cameras=[board_cameras[c.name] for c in cameras],
-                                 mirror_cameras=mirror_cameras)
+    board_cameras = {c.name: c for c in rig.cameras_at(params.calibration_image_scale)}
+    mirror_cameras = None
+    if params.calibration_mirror_scale is not None:
+        by_name = {c.name: c for c in rig.cameras_at(params.calibration_mirror_scale)}
+        mirror_cameras = [by_name[c.name] for c in cameras]
+    start = time.perf_counter()
+    plan = plan_calibration_takes(cameras, bars, take_params, board, spheres,
+                                  board_cameras=[board_cameras[c.name] for c in cameras], mirror_cameras=mirror_cameras)
+    write_take_specs(plan, ctx.out, truth)
+    writer = TakeWriter(ctx.out / "calib")
+    # One entry per camera and take: a rerun (more frames, another performance) renders none of them again.
+    cache = stage_item_cache(ctx, CALIBRATION_CODE)
+    cache.map(ctx.executor, render_take_item, plan.items, calibration_item_key, desc="calibration takes",
+              consume=writer.write)
+    writer.finish()
+    cache.report(ctx, "calibration takes", metrics_prefix="calibration_items")
+    computed = [plan.items[i].kind for i in cache.computed]
+    return {"calibration_board_items_computed": computed.count("board"),
+            "calibration_mirror_items_computed": computed.count("mirror"),
+            "calibration_seconds": time.perf_counter() - start}
 
 
 def _write_truth(truth: Path, rig: RigConfig, cameras, subject, performance, lit_per_pulse, streams,

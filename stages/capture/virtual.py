@@ -11,6 +11,10 @@ encoded files (EXR and true-matte PNG bytes, exactly what is written) and ``puls
 digests all they depend on (rig, subject, render settings, the cameras that receive the
 pulse, the subject's state at that frame, the light). A longer take or more frames therefore
 renders only the new pulses; the others are copied from the cache byte for byte.
+
+The calibration takes are cached the same way, one entry per camera and take
+(``hardware.studio.calibration_takes.render_take_item``, keyed by ``calibration_item_key``):
+a capture rerun with more frames renders no calibration image again.
 """
 
 from __future__ import annotations
@@ -33,6 +37,9 @@ from scene.rig import RigConfig
 # What a rendered pulse depends on besides this module (its cache entries' code version).
 RENDER_CODE = ("scene.camera", "scene.rig", "scene.lights", "scene.face_rig", "scene.image_io", "scene.colour",
                "hardware.studio.renderer", "hardware.studio.subject")
+
+# What a calibration take item depends on besides its own module (hardware.studio.calibration_takes).
+CALIBRATION_CODE = ("scene.camera", "scene.image_io")
 
 _STUDIO_CACHE: dict[tuple, VirtualStudio] = {}
 
@@ -67,6 +74,17 @@ def pulse_key(task: RenderTask) -> str:
         "light": task.light,
         "half": task.half,
     })
+
+
+def calibration_item_key(item) -> str:
+    """Content digest of a calibration take item (``BoardTakeItem`` / ``MirrorTakeItem``): what its files depend on.
+
+    The board item counts the camera, its noise seed, the board print, every pose and the board's
+    render settings; the mirror item the camera (and its native one for the windows), the balls,
+    the bars, the mirror's render settings and the board noise drawn before it (see
+    ``hardware.studio.calibration_takes``).
+    """
+    return content_key(item.kind, item.dependencies())
 
 
 def _studio(task: RenderTask) -> VirtualStudio:

@@ -143,3 +143,49 @@ def test_takes_write_native_windows_with_their_index(tmp_path):
     for win in index["cameras"]["cam00"]["bar03"]:
         x0, y0, x1, y1 = win["box"]
         assert read_exr(tmp_path / "cap" / "calib" / "mirror_roi" / "cam00" / win["file"]).shape == (y1 - y0, x1 - x0, 3)
+
+
+def test_items_rendered_apart_equal_one_sequential_pass_per_camera(tmp_path):
+    """Board and mirror items of a camera, rendered separately (mirror first), give the bytes of the
+    reference: one generator per camera drawing the board images, then the mirror images."""
+    from hardware.studio.calibration_takes import (plan_calibration_takes, render_mirror_rois, render_take_item,
+                                                   sample_board_poses)
+    from scene.image_io import write_exr
+
+    cams = [_camera(), _camera(eye=(-0.3, 0.05, 0.8))]
+    cams[1] = Camera("cam01", *[getattr(cams[1], k) for k in ("width", "height", "fx", "fy", "cx", "cy", "dist",
+                                                             "cam_from_world")])
+    cams = [c.scaled(0.25) for c in cams]
+    natives = [c.scaled(2.0) for c in cams]
+    bars = [BarLight(3, np.array([0.3, 0.5, 1.0]), np.array([1.0, 0.0, 0.0]), 0.3)]
+    board, spheres = CharucoBoardConfig(), MirrorSpheresConfig()
+    params = CalibrationTakeParams(poses=4, seed=7, supersample=1, mirror_supersample=2, highlight_supersample=4,
+                                   roi_highlight_supersample=4)
+    plan = plan_calibration_takes(cams, bars, params, board, spheres, board_cameras=natives)
+    assert [item.kind for item in plan.items] == ["board", "mirror", "board", "mirror"]
+    results = {(r["kind"], r["camera"]): r for r in (render_take_item(item) for item in reversed(plan.items))}
+
+    def reference_bytes(img) -> bytes:
+        write_exr(tmp_path / "ref.exr", img)
+        return (tmp_path / "ref.exr").read_bytes()
+
+    poses = sample_board_poses(board, cams, params, np.random.default_rng(params.seed))
+    tex, margin = board_texture(board)
+    centres = np.asarray(params.volume_center_m) + np.asarray(spheres.offsets_m)
+    for ci, (cam, native) in enumerate(zip(cams, natives)):
+        rng = np.random.default_rng([params.seed, ci])
+        board_files = {f"charuco/{cam.name}/{k:04d}.exr": reference_bytes(
+            render_board_image(native, pose, board, tex, margin, params, rng))
+            for k, pose in enumerate(poses) if board_visible(native, pose, board)}
+        assert board_files and {k: v.tobytes() for k, v in results["board", cam.name]["files"].items()} == board_files
+        coarse = render_mirror_images(cam, centres, spheres, bars, params, rng)
+        mirror = results["mirror", cam.name]
+        for name, img in coarse.items():
+            assert mirror["files"][f"mirror/{cam.name}/{name}.exr"].tobytes() == reference_bytes(img)
+        rois = render_mirror_rois(native, coarse, centres, spheres, bars, params,
+                                  np.random.default_rng([params.seed, ci, 1]))
+        assert {name: [w["box"] for w in found] for name, found in mirror["windows"].items()} == \
+            {name: [list(box) for box, _ in found] for name, found in rois.items()}
+        for name, found in rois.items():
+            for k, (_, img) in enumerate(found):
+                assert mirror["files"][f"mirror_roi/{cam.name}/{name}_{k:02d}.exr"].tobytes() == reference_bytes(img)

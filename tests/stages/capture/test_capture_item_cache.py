@@ -42,3 +42,61 @@ def test_more_frames_render_only_the_new_pulses_and_equal_an_uncached_capture(tm
     cached_files = _files(tmp_path / "b", ("capture", "capture.truth"))
     assert cached_files == _files(tmp_path / "c", ("capture", "capture.truth"))
     assert "capture/frames/cam01/000002.exr" in cached_files and "capture.truth/mattes/cam01/000003.png" in cached_files
+
+
+CALIB = {**SMALL, "calibration_takes": True, "calibration_poses": 3, "calibration_image_scale": 0.2,
+         "repeat_frames": {}, "camera_drop_frames": {}}
+
+
+def _capture_sharing_cache(tmp_path, name: str, seq: Path, params: dict) -> tuple[Path, dict]:
+    """Capture into ``tmp_path/name`` with the per-item cache of ``tmp_path/a``; (output, metrics)."""
+    if name != "a":
+        (tmp_path / name).mkdir()
+        (tmp_path / name / ".cache").symlink_to(tmp_path / "a" / ".cache")
+    out = run_stage_for_test(CAPTURE, tmp_path / name, inputs={"sequence": seq}, params=params)
+    return out, json.loads((out / "metrics.json").read_text())
+
+
+def _calib_counts(metrics: dict) -> tuple[int, int, int, int]:
+    return (metrics["calibration_items_reused"], metrics["calibration_items_computed"],
+            metrics["calibration_board_items_computed"], metrics["calibration_mirror_items_computed"])
+
+
+def test_calibration_takes_are_reused_across_reruns_and_recomputed_only_where_they_change(tmp_path):
+    rig = default_rig()
+    rig = rig.model_copy(update={"cameras": rig.cameras[:2]})
+    seq = run_stage_for_test(SEQUENCE, tmp_path / "seq", params={"cycles": 1, "restarts": 1,
+                                                                 "random_baseline_samples": 4})
+    first, metrics = _capture_sharing_cache(tmp_path, "a", seq, {**CALIB, "rig": rig, "max_frames": 3})
+    assert _calib_counts(metrics) == (0, 4, 2, 2)  # per camera: its board take and its mirror take
+    calib = _files(tmp_path / "a" / "capture", ("calib",))
+    assert {"calib/mirror_roi.json", "calib/mirror/cam01/bar31.exr", "calib/charuco/cam00/0000.exr"} <= set(calib)
+
+    # More performance frames: every calibration item comes from the cache, the files are the same bytes.
+    _, metrics = _capture_sharing_cache(tmp_path, "b", seq, {**CALIB, "rig": rig, "max_frames": 5})
+    assert _calib_counts(metrics) == (4, 0, 0, 0) and metrics["render_pulses_reused"] == 3
+    assert _files(tmp_path / "b" / "capture", ("calib",)) == calib
+    for name in ("calib_board_poses.json", "mirror_spheres.json"):
+        truth_a, truth_b = tmp_path / "a" / "capture.truth" / name, tmp_path / "b" / "capture.truth" / name
+        assert truth_b.read_bytes() == truth_a.read_bytes()
+
+    # Another board print: the board takes change, the mirror takes (drawn after the same board noise) do not.
+    board = {**rig.calibration["board"], "marker_m": 0.027}
+    reprinted = rig.model_copy(update={"calibration": {**rig.calibration, "board": board}})
+    _, metrics = _capture_sharing_cache(tmp_path, "c", seq, {**CALIB, "rig": reprinted, "max_frames": 3})
+    assert _calib_counts(metrics) == (2, 2, 2, 0)
+    changed = _files(tmp_path / "c" / "capture", ("calib",))
+    assert {k: v for k, v in changed.items() if "charuco" not in k and k != "calib/board.json"} == \
+        {k: v for k, v in calib.items() if "charuco" not in k and k != "calib/board.json"}
+    assert changed["calib/charuco/cam00/0000.exr"] != calib["calib/charuco/cam00/0000.exr"]
+    uncached = run_stage_for_test(CAPTURE, tmp_path / "e", inputs={"sequence": seq},
+                                  params={**CALIB, "rig": reprinted, "max_frames": 3})
+    assert changed == _files(uncached, ("calib",))  # what the reused mirror items give is what a fresh run gives
+
+    # More board poses: every board take changes, and so does the mirror take of a camera that sees
+    # more poses (its noise is drawn after the board's).
+    more, metrics = _capture_sharing_cache(tmp_path, "d", seq, {**CALIB, "rig": rig, "max_frames": 3,
+                                                                "calibration_poses": 4})
+    seen_more = sum(len(list((more / "calib" / "charuco" / cam).iterdir())) !=
+                    len(list((first / "calib" / "charuco" / cam).iterdir())) for cam in ("cam00", "cam01"))
+    assert seen_more > 0 and _calib_counts(metrics) == (2 - seen_more, 2 + seen_more, 2, seen_more)
