@@ -79,15 +79,25 @@ class DecodedGeometry:
     density: torch.Tensor  # [B, P, M, M, M]
     guide_vertices: torch.Tensor  # [B, U, 3]
     feature: torch.Tensor  # [B, C, 8, 8]
+    keep: torch.Tensor | None = None  # [P'] long: primitives left after pruning (None = all)
 
     def expand(self, k: int) -> "DecodedGeometry":
         """A batch-1 geometry repeated ``k`` times (views, no copy), e.g. to decode k lights at once."""
         return DecodedGeometry(*(t.expand(k, *t.shape[1:]) for t in (
-            self.centre, self.rotation, self.half_extent, self.density, self.guide_vertices, self.feature)))
+            self.centre, self.rotation, self.half_extent, self.density, self.guide_vertices, self.feature)),
+            keep=self.keep)
 
     def primitives(self, rgb: torch.Tensor) -> Primitives:
-        """Assemble raymarchable primitives with colours ``rgb`` [B, P, M, M, M, 3]."""
-        return Primitives(self.centre, self.rotation, self.half_extent, rgb, self.density)
+        """Assemble raymarchable primitives with colours ``rgb`` [B, P, M, M, M, 3].
+
+        Pruned primitives (see ``RelightableMVP.prune``) are left out, so the raymarcher
+        never tests rays against them.
+        """
+        if self.keep is None:
+            return Primitives(self.centre, self.rotation, self.half_extent, rgb, self.density)
+        k = self.keep
+        return Primitives(self.centre[:, k], self.rotation[:, k], self.half_extent[:, k], rgb[:, k],
+                          self.density[:, k])
 
 
 def _rodrigues(rotvec: torch.Tensor) -> torch.Tensor:
@@ -140,6 +150,39 @@ class RelightableMVP(nn.Module):
         self.log_bar_intensity = nn.Parameter(torch.zeros(num_bars))
         self.density_scale = float(1.0 / float(np.mean(layout.half_extent_m)))
         self.n, self.m = n, m
+        # Primitives still raymarched (False = pruned as empty); saved with the weights.
+        self.register_buffer("prim_keep", torch.ones(n * n, dtype=torch.bool))
+        self._register_load_state_dict_pre_hook(self._default_prim_keep)
+
+    def _default_prim_keep(self, state_dict, prefix, *args, **kwargs) -> None:
+        """Heads saved before pruning existed have no ``prim_keep``: every primitive is kept."""
+        state_dict.setdefault(prefix + "prim_keep", torch.ones(self.n * self.n, dtype=torch.bool))
+
+    # ---- pruning -------------------------------------------------------------------------
+    def prune(self, keep: torch.Tensor) -> int:
+        """Drop the primitives where ``keep`` [P] (bool) is False from rendering; returns how many are pruned now.
+
+        Pruning only accumulates (a pruned primitive never comes back). The decoder still
+        computes every primitive's voxels (they are pixels of one UV image); the raymarcher,
+        whose cost grows with the number of boxes, skips them.
+        """
+        keep = keep.to(device=self.prim_keep.device, dtype=torch.bool).reshape(-1)
+        if keep.numel() != self.prim_keep.numel():
+            raise ValueError(f"prune: keep has {keep.numel()} entries for {self.prim_keep.numel()} primitives")
+        with torch.no_grad():
+            self.prim_keep &= keep
+        return int((~self.prim_keep).sum())
+
+    @property
+    def num_pruned(self) -> int:
+        """Primitives pruned so far."""
+        return int((~self.prim_keep).sum())
+
+    def kept_index(self) -> torch.Tensor | None:
+        """Indices [P'] of the primitives still rendered, or None when none is pruned."""
+        if bool(self.prim_keep.all()):
+            return None
+        return torch.nonzero(self.prim_keep, as_tuple=True)[0]
 
     # ---- encoder -------------------------------------------------------------------------
     def guide_vertices_of(self, mesh_vertices: torch.Tensor) -> torch.Tensor:
@@ -179,7 +222,7 @@ class RelightableMVP(nn.Module):
         raw_alpha = self.alpha_branch(feature)  # [B, M_z, N*M, N*M]
         density = F.softplus(raw_alpha) * self.density_scale
         density = density.view(b, m, n, m, n, m).permute(0, 2, 4, 1, 3, 5).reshape(b, n * n, m, m, m)
-        return DecodedGeometry(centre, rotation, half_extent, density, verts, feature)
+        return DecodedGeometry(centre, rotation, half_extent, density, verts, feature, keep=self.kept_index())
 
     def _tile(self, per_prim: torch.Tensor) -> torch.Tensor:
         """Per-primitive values [B, P, C] -> UV image [B, C, N*M, N*M], constant over each M x M tile."""

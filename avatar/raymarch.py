@@ -60,10 +60,17 @@ class Primitives:
 
 @dataclass
 class RenderResult:
-    """Raymarched colour [B, R, 3] and accumulated opacity [B, R] of each ray."""
+    """Raymarched colour [B, R, 3] and accumulated opacity [B, R] of each ray.
+
+    ``prim_alpha`` [B, P] (only when asked for): the largest opacity any of the rays gave
+    to each primitive, i.e. the most a primitive ever added to a pixel's alpha (the share
+    of the ray it filled before saturation). Primitives whose ``prim_alpha`` stays near 0
+    over the training set can be pruned without changing the images.
+    """
 
     rgb: torch.Tensor
     alpha: torch.Tensor
+    prim_alpha: torch.Tensor | None = None
 
 
 @torch.no_grad()
@@ -142,20 +149,30 @@ def _trilinear_gather(table: torch.Tensor, base: torch.Tensor, local: torch.Tens
     return (values * w[..., None]).sum(1)  # [Q, C]
 
 
+def _sample_share(sigma: torch.Tensor, dt: torch.Tensor) -> torch.Tensor:
+    """Share [B, R, S] of each sample's opacity below saturation (1 until the ray is opaque, then 0)."""
+    opacity = sigma * dt[..., None]  # [B, R, S]
+    before = torch.cumsum(opacity, -1) - opacity
+    return ((1.0 - before) / opacity.clamp(min=1e-10)).clamp(0.0, 1.0)
+
+
 def raymarch(prims: Primitives, rays_o: torch.Tensor, rays_d: torch.Tensor, steps: int,
-             max_pairs: int = 1 << 23) -> RenderResult:
+             max_pairs: int = 1 << 23, prim_stats: bool = False) -> RenderResult:
     """Render rays [B, R, 3] (origins, unit directions; head space) through ``prims``: the fast path.
 
     Differentiable in the primitives' geometry, colours and densities. Rays are processed in
     chunks so that no [B, R_chunk, P] intermediate exceeds ``max_pairs`` entries.
+    ``prim_stats``: also return ``prim_alpha`` [B, P] (see ``RenderResult``; not differentiable).
     """
     b, r, _ = rays_o.shape
     p = prims.centre.shape[1]
     chunk = max(1, min(r, max_pairs // max(1, b * p)))
     if chunk < r:
-        parts = [raymarch(prims, rays_o[:, i:i + chunk], rays_d[:, i:i + chunk], steps, max_pairs)
+        parts = [raymarch(prims, rays_o[:, i:i + chunk], rays_d[:, i:i + chunk], steps, max_pairs, prim_stats)
                  for i in range(0, r, chunk)]
-        return RenderResult(torch.cat([x.rgb for x in parts], 1), torch.cat([x.alpha for x in parts], 1))
+        prim_alpha = torch.stack([x.prim_alpha for x in parts]).amax(0) if prim_stats else None
+        return RenderResult(torch.cat([x.rgb for x in parts], 1), torch.cat([x.alpha for x in parts], 1),
+                            prim_alpha)
     m = prims.voxels_per_side
     hit, t_near, t_far = box_intervals(prims, rays_o, rays_d)
     t, dt = ray_samples(hit, t_near, t_far, steps)  # [B, R, S], [B, R]
@@ -185,7 +202,17 @@ def raymarch(prims: Primitives, rays_o: torch.Tensor, rays_d: torch.Tensor, step
     sigma = torch.zeros(n_samples, dtype=table.dtype, device=table.device).index_add(0, sample_id, sigma_k)
     sigma_rgb = torch.zeros(n_samples, 3, dtype=table.dtype, device=table.device).index_add(
         0, sample_id, rgba[:, :3] * sigma_k[:, None])
-    return composite(sigma.view(b, r, steps), sigma_rgb.view(b, r, steps, 3), dt)
+    result = composite(sigma.view(b, r, steps), sigma_rgb.view(b, r, steps, 3), dt)
+    if prim_stats:
+        with torch.no_grad():
+            share = _sample_share(sigma.detach().view(b, r, steps), dt).reshape(-1)  # [B*R*S]
+            # Opacity each (sample, primitive) pair adds below saturation, summed per (ray, primitive).
+            added = sigma_k.detach() * dt.reshape(-1)[bi * r + ri] * share[sample_id]  # [Q]
+            per_ray = torch.zeros(b * r * k, dtype=added.dtype, device=added.device).index_add(0, pair_ray, added)
+            prim_alpha = torch.zeros(b * p, dtype=added.dtype, device=added.device).scatter_reduce(
+                0, flat_p, per_ray, reduce="amax", include_self=True)
+        result.prim_alpha = prim_alpha.view(b, p)
+    return result
 
 
 def raymarch_reference(prims: Primitives, rays_o: torch.Tensor, rays_d: torch.Tensor, steps: int) -> RenderResult:

@@ -38,21 +38,21 @@ def _tensors(width_px: int, frames: int, device: torch.device) -> tuple[TrainTen
                      cam_from_world=look_at(np.array(spec.position_m), np.array(spec.look_at_m)))
         cams.append(cam.scaled(width_px / rig.width_px))
     h, w = cams[0].height, cams[0].width
-    rays = [c.image_rays() for c in cams]
-    ro = torch.as_tensor(np.stack([r[0] for r in rays]).reshape(1, len(cams), h * w, 3), dtype=torch.float32)
-    rd = torch.as_tensor(np.stack([r[1] for r in rays]).reshape(1, len(cams), h * w, 3), dtype=torch.float32)
+    # Pixel directions in each camera's frame, and the cameras' head_from_cam rotations.
+    dirs = np.stack([c.pixel_rays(np.stack(np.meshgrid(np.arange(w), np.arange(h)), -1).reshape(-1, 2))[1]
+                     @ c.cam_from_world.R.T for c in cams])  # [C, H*W, 3]
+    rot = np.stack([c.cam_from_world.R.T for c in cams])[None].repeat(frames, 0)  # [F, C, 3, 3]
     g = torch.Generator().manual_seed(0)
     t = TrainTensors(
         images=torch.rand(frames, len(cams), h * w, 3, generator=g).to(device),
         mattes=torch.ones(frames, len(cams), h * w).to(device),
-        rays_o=ro.expand(frames, -1, -1, -1).contiguous().to(device),
-        rays_d=rd.expand(frames, -1, -1, -1).contiguous().to(device),
-        pixel_weights=torch.ones(frames, len(cams), h * w),
+        pixel_dirs=torch.as_tensor(dirs, dtype=torch.float32, device=device),
+        head_from_cam=torch.as_tensor(rot, dtype=torch.float32, device=device),
         cam_pos=torch.as_tensor(np.stack([c.center_world for c in cams]), dtype=torch.float32)[None]
         .expand(frames, -1, -1).contiguous().to(device),
         light_pos=torch.tensor([[0.5, 0.3, 1.0]]).expand(frames, -1).contiguous().to(device),
         bar=torch.zeros(frames, dtype=torch.long, device=device),
-        guide_vertices=torch.zeros(0), height=h, width=w)
+        guide_vertices=torch.zeros(0), height=h, width=w, device=device)
     return t, verts, face.triangles
 
 
@@ -86,7 +86,8 @@ def _measure(config: AvatarConfig, width_px: int, batch: int, rays: int, iterati
             mu, _ = model.encode(t.guide_vertices[:1])
             geo = model.decode_geometry(mu)
             rgb = model.decode_rgb(geo, t.cam_pos[:1, 0], t.light_pos[:1])
-            raymarch(geo.primitives(rgb), t.rays_o[:1, 0], t.rays_d[:1, 0], config.steps_per_ray)
+            ro, rd = t.image_rays(0, 0)
+            raymarch(geo.primitives(rgb), ro[None], rd[None], config.steps_per_ray)
             if device.type == "cuda":
                 torch.cuda.synchronize()
             out["render_seconds_per_image"] = time.perf_counter() - start

@@ -75,3 +75,50 @@ def tradeoff_chart(title: str, x_label: str, y_label: str, points: Sequence[Mapp
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)
+
+
+def capacity_chart(points: Sequence[Mapping], path: Path, title: str) -> None:
+    """Capacity against held-out PSNR (left) and cost (right), the rule's choice and the knee marked.
+
+    ``points``: mappings with ``texels_per_side``, ``heldout_psnr``, ``iterations_per_second``,
+    ``peak_memory_mb``, ``prims_per_side``, ``voxels_per_side`` and optional ``rule_choice``
+    and ``knee`` flags.
+    """
+    pts = sorted(points, key=lambda p: p["texels_per_side"])
+    x = [p["texels_per_side"] for p in pts]
+    fig, (ax, ax2) = plt.subplots(1, 2, figsize=(11, 4))
+    ax.plot(x, [p["heldout_psnr"] for p in pts], "o-", label="held-out PSNR")
+    for p in pts:
+        ax.annotate(f"N={p['prims_per_side']} M={p['voxels_per_side']}", (p["texels_per_side"], p["heldout_psnr"]),
+                    fontsize=7, xytext=(3, -10), textcoords="offset points")
+    chosen = [p for p in pts if p.get("rule_choice")]
+    if chosen:
+        ax.scatter([p["texels_per_side"] for p in chosen], [p["heldout_psnr"] for p in chosen], s=220,
+                   facecolors="none", edgecolors="red", linewidths=2, label="rule's choice", zorder=5)
+    knee = [p for p in pts if p.get("knee")]
+    if knee:
+        ax.scatter([p["texels_per_side"] for p in knee], [p["heldout_psnr"] for p in knee], marker="x", s=120,
+                   color="green", linewidths=2.5, label="knee (Kneedle)", zorder=6)
+    ax.set_xscale("log", base=2)
+    ax.set_xlabel("capacity: texels per UV side, N x M")
+    ax.set_ylabel("held-out PSNR (dB)")
+    ax.set_title(title, fontsize=9)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    ax2.plot(x, [1.0 / p["iterations_per_second"] for p in pts], "s-", color="#d62728", label="s / iteration")
+    ax2.set_xscale("log", base=2)
+    ax2.set_xlabel("capacity: texels per UV side, N x M")
+    ax2.set_ylabel("training seconds per iteration")
+    ax3 = ax2.twinx()
+    ax3.plot(x, [p["peak_memory_mb"] for p in pts], "^--", color="#2ca02c", label="peak memory (MB)")
+    ax3.set_ylabel("peak memory (MB)")
+    if chosen:
+        ax2.axvline(chosen[0]["texels_per_side"], color="red", ls=":", lw=1.5, label="rule's choice")
+    handles, labels = ax2.get_legend_handles_labels()
+    more_handles, more_labels = ax3.get_legend_handles_labels()
+    ax2.legend(handles + more_handles, labels + more_labels, fontsize=8, loc="upper left")
+    ax2.set_title("cost of each capacity", fontsize=9)
+    ax2.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)

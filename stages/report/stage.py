@@ -24,6 +24,7 @@ from pathlib import Path
 from pydantic import Field
 
 from pipeline.stage import Stage, StageContext, StageParams
+from stages.report.capacity import BENCH_PNG as CAPACITY_PNG, capacity_section
 from stages.report.charts import stage_timings_chart, target_ratio_chart, tradeoff_chart
 from stages.report.html import Section, Table, render_document
 from stages.report.targets import TARGETS
@@ -155,7 +156,7 @@ def _tradeoff_charts(ctx: StageContext, charts: Path) -> list[tuple[Path, str]]:
     return made
 
 
-def _bench_section(folder: Path) -> Section:
+def _bench_section(folder: Path, skip: tuple[str, ...] = ()) -> Section:
     """The figures and charts `make bench` wrote (speed/accuracy sweeps, stability sweeps)."""
     section = Section("Benchmarks and sweeps (make bench)", "bench")
     section.paragraph(f"From {folder}; each benchmark's scalar figures, then its charts. Benchmarks run on "
@@ -175,7 +176,8 @@ def _bench_section(folder: Path) -> Section:
                 table.add([key, _fmt(value)])
             section.table(table)
     for png in sorted(folder.glob("*.png")):
-        section.figure(png, f"bench: {png.stem.replace('_', ' ')}")
+        if png.name not in skip:  # charts a section of their own already shows
+            section.figure(png, f"bench: {png.stem.replace('_', ' ')}")
     return section
 
 
@@ -211,7 +213,10 @@ def run(ctx: StageContext) -> None:
 
     bench = bench_results_folder(params)
     if bench:
-        sections.append(_bench_section(bench[0]))
+        capacity = capacity_section(bench[0], charts)
+        if capacity is not None:
+            sections.append(capacity)
+        sections.append(_bench_section(bench[0], skip=(CAPACITY_PNG,) if capacity is not None else ()))
 
     seconds = {}
     for stage, evaluator in STAGE_EVALS:

@@ -5,12 +5,18 @@ the stabilised per-frame cameras (``stabilize/cameras_head.json``, cam_from_head
 tracked head-space mesh (``track/meshes.npz``), the mattes (``matte/mattes``) and the lit
 bar's centre (``lightcal/bars.json``, world space) moved into head space with the tracked
 pose (``track/tracking.npz``, world_from_head). Images are resized to the training width.
+
+Memory: per-pixel rays are not stored (a camera's pixel directions are the same in every
+frame; only its pose in head space changes), and when the images and mattes would take more
+than ``resident_limit_gb`` they are written to memory-mapped files in ``spill_dir`` instead of
+RAM (the paper preset: thousands of 1024x768 images), so the trainer gathers the pixels of a
+batch from disk pages rather than holding the capture in memory.
 """
 
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -29,9 +35,12 @@ class TrainData:
         take: [F] take name of each frame.
         bar: [F] lit bar id of each frame.
         camera_names: [C] camera ids.
-        images: [F, C, H, W, 3] linear RGB float32.
-        mattes: [F, C, H, W] alpha float32.
-        rays_o, rays_d: [F, C, H, W, 3] head-space ray origins and unit directions, float32.
+        images: [F, C, H, W, 3] linear RGB float32 (an ``np.memmap`` when spilled to disk).
+        mattes: [F, C, H, W] alpha float32 (an ``np.memmap`` when spilled to disk).
+        pixel_dirs_cam: [C, H*W, 3] unit ray direction of every pixel in its camera's frame
+            (lens distortion undone), float32.
+        head_from_cam_rot: [F, C, 3, 3] camera rotations in head space: a pixel's head-space
+            direction is ``head_from_cam_rot @ pixel_dirs_cam``, its origin ``cam_pos_head``.
         cam_pos_head: [F, C, 3] camera centres in head space, metres.
         light_pos_head: [F, 3] lit bar centre in head space, metres.
         light_pos_world: [B, 3] every bar's centre in world space (row = bar id).
@@ -46,8 +55,8 @@ class TrainData:
     camera_names: list[str]
     images: np.ndarray
     mattes: np.ndarray
-    rays_o: np.ndarray
-    rays_d: np.ndarray
+    pixel_dirs_cam: np.ndarray
+    head_from_cam_rot: np.ndarray
     cam_pos_head: np.ndarray
     light_pos_head: np.ndarray
     light_pos_world: np.ndarray
@@ -58,6 +67,16 @@ class TrainData:
     @property
     def num_bars(self) -> int:
         return int(self.light_pos_world.shape[0])
+
+    @property
+    def spilled(self) -> bool:
+        """Whether the images and mattes live in memory-mapped files rather than RAM."""
+        return isinstance(self.images, np.memmap)
+
+    def rays(self, frame: int, camera: int) -> tuple[np.ndarray, np.ndarray]:
+        """Head-space origins and unit directions [H*W, 3] of every pixel of one (frame, camera) image."""
+        dirs = self.pixel_dirs_cam[camera] @ self.head_from_cam_rot[frame, camera].T  # [H*W, 3]
+        return np.broadcast_to(self.cam_pos_head[frame, camera], dirs.shape).copy(), dirs
 
 
 def _read_json(path: Path) -> dict:
@@ -108,8 +127,33 @@ def _resize(img: np.ndarray, width: int, height: int) -> np.ndarray:
     return cv2.resize(img, (width, height), interpolation=cv2.INTER_AREA)
 
 
-def load_train_data(inputs: dict[str, Path], image_width_px: int, log, max_frames: int = 0) -> TrainData:
-    """Read the training data from the upstream folders (never from ``capture.truth``)."""
+def _image_array(shape: tuple[int, ...], spill_dir: Path | None, name: str) -> np.ndarray:
+    """A zeroed float32 array in RAM, or a memory-mapped ``.npy`` file in ``spill_dir``."""
+    if spill_dir is None:
+        return np.zeros(shape, np.float32)
+    spill_dir.mkdir(parents=True, exist_ok=True)
+    # A fresh file each time: a spilled array is scratch space, rebuilt from the inputs.
+    return np.lib.format.open_memmap(spill_dir / f"{name}.npy", mode="w+", dtype=np.float32, shape=shape)
+
+
+def _pixel_directions(cam: Camera) -> np.ndarray:
+    """Unit directions [H*W, 3] of ``cam``'s pixel centres in its own frame."""
+    at_origin = replace(cam, cam_from_world=Rigid(np.eye(3), np.zeros(3)))
+    _, dirs = at_origin.image_rays()
+    return dirs.reshape(-1, 3)
+
+
+def _intrinsics(cam: Camera) -> tuple:
+    return (cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy, tuple(cam.dist))
+
+
+def load_train_data(inputs: dict[str, Path], image_width_px: int, log, max_frames: int = 0,
+                    resident_limit_gb: float = 8.0, spill_dir: Path | None = None) -> TrainData:
+    """Read the training data from the upstream folders (never from ``capture.truth``).
+
+    ``resident_limit_gb``: images and mattes larger than this go to memory-mapped files in
+    ``spill_dir`` (required then) instead of RAM.
+    """
     capture, stabilize, track = inputs["capture"], inputs["stabilize"], inputs["track"]
     matte, lightcal = inputs["matte"], inputs["lightcal"]
     manifest = _read_json(capture / "manifest.json")
@@ -160,10 +204,18 @@ def load_train_data(inputs: dict[str, Path], image_width_px: int, log, max_frame
     scale = image_width_px / width0 if image_width_px else 1.0
     width, height = int(round(width0 * scale)), int(round(height0 * scale))
     nf, nc = len(frames), len(camera_names)
-    images = np.zeros((nf, nc, height, width, 3), np.float32)
-    mattes = np.zeros((nf, nc, height, width), np.float32)
-    rays_o = np.zeros((nf, nc, height, width, 3), np.float32)
-    rays_d = np.zeros((nf, nc, height, width, 3), np.float32)
+    image_gb = nf * nc * height * width * 4 * 4 / 1e9  # RGB + alpha, float32
+    spill = image_gb > resident_limit_gb
+    if spill and spill_dir is None:
+        raise ValueError("load_train_data: spill_dir is required when the images exceed resident_limit_gb")
+    images = _image_array((nf, nc, height, width, 3), spill_dir if spill else None, "images")
+    mattes = _image_array((nf, nc, height, width), spill_dir if spill else None, "mattes")
+    if spill:
+        log.info("train data: %.1f GB of images and mattes > train.resident_limit_gb=%.1f; memory-mapped "
+                 "from %s", image_gb, resident_limit_gb, spill_dir)
+    pixel_dirs = np.zeros((nc, height * width, 3), np.float32)
+    cam_intrinsics: list[tuple | None] = [None] * nc
+    head_from_cam = np.zeros((nf, nc, 3, 3), np.float32)
     cam_pos = np.zeros((nf, nc, 3), np.float32)
     light_head = np.zeros((nf, 3), np.float32)
     head_t = np.zeros((nf, 3), np.float32)
@@ -189,12 +241,18 @@ def load_train_data(inputs: dict[str, Path], image_width_px: int, log, max_frame
             images[i, j] = _resize(img, width, height)
             mattes[i, j] = _resize(alpha, width, height)
             cam_small = cam.scaled(width / cam.width)
-            o, d = cam_small.image_rays()
-            rays_o[i, j], rays_d[i, j] = o, d
+            if cam_intrinsics[j] is None:
+                cam_intrinsics[j] = _intrinsics(cam_small)
+                pixel_dirs[j] = _pixel_directions(cam_small)
+            elif _intrinsics(cam_small) != cam_intrinsics[j]:
+                raise InputError(f"{stabilize / 'cameras_head.json'}: camera '{name}' has other intrinsics in frame "
+                                 f"{idx} than in frame {frames[0][0]}; a camera's lens must be the same in every "
+                                 "frame (re-run calibrate and stabilize)")
+            head_from_cam[i, j] = cam_small.cam_from_world.R.T
             cam_pos[i, j] = cam_small.center_world
     log.info("train data: %d OLAT frames x %d cameras at %dx%d px", nf, nc, width, height)
     return TrainData(
         frame_index=np.array([f[0] for f in frames]), take=np.array([f[1] for f in frames]),
         bar=np.array([f[2] for f in frames]), camera_names=camera_names, images=images, mattes=mattes,
-        rays_o=rays_o, rays_d=rays_d, cam_pos_head=cam_pos, light_pos_head=light_head,
+        pixel_dirs_cam=pixel_dirs, head_from_cam_rot=head_from_cam, cam_pos_head=cam_pos, light_pos_head=light_head,
         light_pos_world=light_world.astype(np.float32), head_t_world=head_t, vertices=verts, triangles=triangles)

@@ -48,21 +48,83 @@ class LossWeights:
     mat: float = 0.1
 
 
+@dataclass(frozen=True)
+class PruneSchedule:
+    """When and how empty primitives are pruned.
+
+    Over the ``window`` iterations before ``at_iteration`` the trainer records, for every
+    primitive, the largest opacity it added to any training ray (``RenderResult.prim_alpha``);
+    at ``at_iteration`` the primitives whose record stays below ``max_alpha`` are dropped
+    from the raymarch (``RelightableMVP.prune``).
+    """
+
+    at_iteration: int
+    window: int
+    max_alpha: float = 0.01
+
+    @property
+    def start(self) -> int:
+        """First iteration whose rays are recorded."""
+        return max(0, self.at_iteration - self.window)
+
+
 @dataclass
 class TrainTensors:
-    """The training data as tensors on the training device (flattened pixels)."""
+    """The training data as tensors (flattened pixels), and how a batch is gathered from it.
 
-    images: torch.Tensor  # [F, C, H*W, 3]
-    mattes: torch.Tensor  # [F, C, H*W]
-    rays_o: torch.Tensor  # [F, C, H*W, 3]
-    rays_d: torch.Tensor  # [F, C, H*W, 3]
-    pixel_weights: torch.Tensor  # [F, C, H*W] ray sampling weights (foreground-heavy)
+    Pixels stay where they are cheapest: on the training device when they fit (``images``
+    and ``mattes`` on ``device``), else on the CPU over memory-mapped files (the paper
+    preset), from which each batch's few pixels are gathered and moved to ``device``. Rays
+    are not stored per pixel: a pixel's direction is its camera's fixed direction for that
+    pixel rotated by the camera's pose in head space that frame.
+    """
+
+    images: torch.Tensor  # [F, C, H*W, 3] on device, or CPU (memory-mapped)
+    mattes: torch.Tensor  # [F, C, H*W] same place as images
+    pixel_dirs: torch.Tensor  # [C, H*W, 3] unit directions in each camera's frame
+    head_from_cam: torch.Tensor  # [F, C, 3, 3] camera rotations in head space
     cam_pos: torch.Tensor  # [F, C, 3]
     light_pos: torch.Tensor  # [F, 3]
     bar: torch.Tensor  # [F] long
     guide_vertices: torch.Tensor  # [F, U, 3]
     height: int
     width: int
+    device: torch.device = torch.device("cpu")
+
+    @property
+    def num_cameras(self) -> int:
+        return int(self.images.shape[1])
+
+    def pixels(self, frames: torch.Tensor, cams: torch.Tensor, pix: torch.Tensor
+               ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Colours [B, R, 3] and matte [B, R] of pixels ``pix`` [B, R] of images (``frames`` [B], ``cams`` [B]), on ``device``."""
+        src = self.images.device
+        fi, ci, pi = frames.to(src)[:, None], cams.to(src)[:, None], pix.to(src)
+        return self.images[fi, ci, pi].to(self.device), self.mattes[fi, ci, pi].to(self.device)
+
+    def rays(self, frames: torch.Tensor, cams: torch.Tensor, pix: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Head-space origins and unit directions [B, R, 3] of pixels ``pix`` [B, R]."""
+        frames, cams, pix = frames.to(self.device), cams.to(self.device), pix.to(self.device)
+        dirs = self.pixel_dirs[cams[:, None], pix]  # [B, R, 3]
+        # Elementwise, not a batched matmul: each ray's value must not depend on the batch's size
+        # (a DDP rank computes half the batch; bmm's blocking would change the rounding).
+        rd = (self.head_from_cam[frames, cams][:, None] * dirs[:, :, None, :]).sum(-1)  # [B, R, 3]
+        return self.cam_pos[frames, cams][:, None].expand_as(rd), rd
+
+    def image_rays(self, f: int, c: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """Origins and directions [H*W, 3] of every pixel of image (f, c)."""
+        rd = self.pixel_dirs[c] @ self.head_from_cam[f, c].T  # [H*W, 3]
+        return self.cam_pos[f, c][None].expand_as(rd), rd
+
+    def image(self, f: int, c: int) -> torch.Tensor:
+        """Image (f, c) [H*W, 3] on ``device``."""
+        return self.images[f, c].to(self.device)
+
+    def sampling_weights(self, frames: torch.Tensor, cams: torch.Tensor) -> torch.Tensor:
+        """Ray sampling weights [B, H*W] on the CPU: foreground, grown by 3 px, weighs 1.1, background 0.1."""
+        src = self.mattes.device
+        m = self.mattes[frames.to(src), cams.to(src)].float().view(-1, 1, self.height, self.width)
+        return (F.max_pool2d(m, 7, 1, 3).view(len(frames), -1) + 0.1).cpu()
 
 
 @dataclass
@@ -75,6 +137,8 @@ class TrainState:
     lr: float = 0.0
     rollbacks: int = 0
     curve: list = field(default_factory=list)  # [(iteration, train_seconds, novel-light PSNR dB)]
+    pruned: int = 0  # primitives pruned (0 until the scheduled iteration)
+    prune_done: bool = False
 
 
 class Renderer:
@@ -115,7 +179,7 @@ class Renderer:
             b_eff = torch.where(known, b, torch.full_like(b, -1))
             intensity = self.model.bar_intensity(b_eff)
             rgb = self.rgb(geo, t.cam_pos[f, c][None], lp, b_eff, intensity)
-            res = raymarch(geo.primitives(rgb), t.rays_o[f, c][None], t.rays_d[f, c][None],
+            res = raymarch(geo.primitives(rgb), *[x[None] for x in t.image_rays(f, c)],
                            self.model.config.steps_per_ray)
             rgbs.append(res.rgb.view(t.height, t.width, 3))
             alphas.append(res.alpha.view(t.height, t.width))
@@ -148,10 +212,12 @@ class ModelTrainer:
                  batch_size: int, rays_per_image: int, lr: float, weights: LossWeights, seed: int,
                  ckpt_path: Path, checkpoint_every: int, spike_factor: float, log: logging.Logger,
                  curve_every: int = 0, curve_fn: Callable[[], float] | None = None, writer=None,
-                 lr_decay_to: float = 1.0, rank: int = 0, world_size: int = 1) -> None:
+                 lr_decay_to: float = 1.0, rank: int = 0, world_size: int = 1,
+                 prune: PruneSchedule | None = None) -> None:
         """``rank``/``world_size``: this process's place in an initialised process group (1 = no DDP).
 
         ``batch_size`` is the global batch; with DDP it must divide by ``world_size``.
+        ``prune``: when to prune empty primitives (None = never).
         """
         if batch_size % world_size:
             raise ValueError(f"batch_size {batch_size} does not divide by {world_size} processes")
@@ -170,10 +236,13 @@ class ModelTrainer:
         self.state = TrainState(lr=lr)
         self._good: dict | None = None
         self._loss_fn: Callable = self.losses
+        self.prune = prune if prune is not None and 0 < prune.at_iteration <= iterations else None
+        # [P] largest opacity each primitive added to a training ray in the pruning window.
+        self.prim_alpha_max = torch.zeros(self.model.prim_keep.numel(), device=tensors.device)
         if world_size > 1:
             from torch.nn.parallel import DistributedDataParallel
 
-            dev = tensors.images.device
+            dev = tensors.device
             # Both kinds use every parameter in every training iteration (unseen bars'
             # intensities are rows of one indexed tensor), so DDP needs no unused-parameter search.
             self._loss_fn = DistributedDataParallel(_BatchLoss(self), device_ids=[dev] if dev.type == "cuda" else None)
@@ -181,7 +250,8 @@ class ModelTrainer:
     # ---- checkpoints -------------------------------------------------------------------------
     def _snapshot(self) -> dict:
         return {"model": self.model.state_dict(), "optim": self.optim.state_dict(),
-                "rng": self.gen.get_state(), "state": json.dumps(self.state.__dict__)}
+                "rng": self.gen.get_state(), "state": json.dumps(self.state.__dict__),
+                "prim_alpha_max": self.prim_alpha_max.detach().cpu().clone()}
 
     def save_checkpoint(self) -> None:
         snap = self._snapshot()
@@ -199,6 +269,8 @@ class ModelTrainer:
             self.optim.load_state_dict(snap["optim"])
             self.gen.set_state(snap["rng"])
             self.state = TrainState(**json.loads(snap["state"]))
+            if "prim_alpha_max" in snap:
+                self.prim_alpha_max = snap["prim_alpha_max"].to(self.prim_alpha_max.device)
         except (OSError, RuntimeError, KeyError, ValueError, TypeError) as err:
             self.log.warning("%s: unreadable checkpoint (%s); starting this model from scratch", self.ckpt_path, err)
             return False
@@ -217,8 +289,12 @@ class ModelTrainer:
         self.log.warning("%s iteration %d: %s; rolled back to the last good checkpoint, lr -> %.3g",
                          self.r.kind, self.state.iteration, reason, self.state.lr)
         if self._good is not None:
+            # Pruning only accumulates: a state saved before the scheduled pruning must not bring
+            # the pruned primitives back.
+            keep = self.model.prim_keep.clone()
             self.model.load_state_dict(self._good["model"])
             self.optim.load_state_dict(self._good["optim"])
+            self.model.prune(keep)
         self._set_lr(self.state.lr)
 
     # ---- one iteration -------------------------------------------------------------------------
@@ -227,8 +303,8 @@ class ModelTrainer:
         t, g = self.t, self.gen
         pick = torch.randint(len(self.train_frames), (self.batch_size,), generator=g)
         frames = torch.as_tensor(self.train_frames)[pick]
-        cams = torch.randint(t.images.shape[1], (self.batch_size,), generator=g)
-        w = t.pixel_weights[frames, cams].cpu()  # [B, H*W]
+        cams = torch.randint(t.num_cameras, (self.batch_size,), generator=g)
+        w = t.sampling_weights(frames, cams)  # [B, H*W]
         pix = torch.multinomial(w, self.rays, replacement=True, generator=g)  # [B, R]
         return frames, cams, pix
 
@@ -236,19 +312,20 @@ class ModelTrainer:
                eps: torch.Tensor) -> tuple[torch.Tensor, dict[str, float]]:
         """Weighted loss and its terms for one batch."""
         t, model = self.t, self.model
-        dev = t.images.device
-        frames, cams, pix = frames.to(dev), cams.to(dev), pix.to(dev)
-        fi, ci = frames[:, None], cams[:, None]
-        gt = t.images[fi, ci, pix]  # [B, R, 3]
-        matte = t.mattes[fi, ci, pix]  # [B, R]
-        ro, rd = t.rays_o[fi, ci, pix], t.rays_d[fi, ci, pix]
+        dev = t.device
+        gt, matte = t.pixels(frames, cams, pix)  # [B, R, 3], [B, R]
+        ro, rd = t.rays(frames, cams, pix)  # [B, R, 3] each
+        frames, cams = frames.to(dev), cams.to(dev)
         target_verts = t.guide_vertices[frames]  # [B, U, 3]
         mu, logvar = model.encode(target_verts)
         z = mu + eps.to(dev) * torch.exp(0.5 * logvar)
         geo = model.decode_geometry(z)
         bar = t.bar[frames]
         rgb = self.r.rgb(geo, t.cam_pos[frames, cams], t.light_pos[frames], bar, model.bar_intensity(bar))
-        res = raymarch(geo.primitives(rgb), ro, rd, model.config.steps_per_ray)
+        record = self._recording()
+        res = raymarch(geo.primitives(rgb), ro, rd, model.config.steps_per_ray, prim_stats=record)
+        if record:
+            self.prim_alpha_max = torch.maximum(self.prim_alpha_max, res.prim_alpha.amax(0))
         pho = F.mse_loss(res.rgb, gt)
         geo_loss = F.mse_loss(geo.guide_vertices, target_verts) / 1e-4  # cm^2
         vol = model.volume_prior(geo)
@@ -260,6 +337,30 @@ class ModelTrainer:
         return total, {"loss": float(total.detach()), "pho": float(pho.detach()), "geo": float(geo_loss.detach()),
                        "vol": float(vol.detach()),
                        "kld": float(kld.detach()), "mat": float(mat.detach()), "psnr": psnr}
+
+    # ---- pruning ---------------------------------------------------------------------------------
+    def _recording(self) -> bool:
+        """Whether this iteration's rays feed the pruning statistics (the window before pruning)."""
+        return (self.prune is not None and not self.state.prune_done and self.model.kept_index() is None
+                and self.prune.start <= self.state.iteration < self.prune.at_iteration)
+
+    def prune_now(self) -> int:
+        """Prune the primitives whose recorded opacity stayed below the threshold; returns how many."""
+        stats = self.prim_alpha_max
+        if self.world_size > 1:
+            import torch.distributed as dist
+
+            stats = stats.clone()
+            if dist.get_backend() != "nccl":
+                stats = stats.cpu()
+            dist.all_reduce(stats, op=dist.ReduceOp.MAX)  # every rank prunes the same primitives
+        keep = stats.to(self.model.prim_keep.device) >= self.prune.max_alpha
+        pruned = self.model.prune(keep)
+        self.state.pruned, self.state.prune_done = pruned, True
+        self.log.info("%s iteration %d: pruned %d of %d primitives (max opacity added to any training ray "
+                      "< %.3g over iterations %d-%d)", self.r.kind, self.state.iteration, pruned,
+                      keep.numel(), self.prune.max_alpha, self.prune.start, self.prune.at_iteration)
+        return pruned
 
     def _share(self) -> slice:
         """This rank's contiguous part of the global batch."""
@@ -273,7 +374,7 @@ class ModelTrainer:
         keys = [k for k in terms if k != "psnr"]
         values = torch.tensor([terms[k] for k in keys], dtype=torch.float64)
         if dist.get_backend() == "nccl":
-            values = values.to(self.t.images.device)
+            values = values.to(self.t.device)
         dist.all_reduce(values)
         out = dict(zip(keys, (values.cpu() / self.world_size).tolist()))
         out["psnr"] = -10.0 * math.log10(max(out["pho"], 1e-12)) if math.isfinite(out["pho"]) else float("nan")
@@ -338,6 +439,8 @@ class ModelTrainer:
                 self.state.curve.append((it, self.state.train_seconds, value))
                 if self.writer is not None:
                     self.writer.add_scalar(f"{self.r.kind}/heldout_psnr", value, it)
+            if self.prune is not None and not self.state.prune_done and it >= self.prune.at_iteration:
+                self.prune_now()
             if it % self.checkpoint_every == 0 or it == self.iterations:
                 self.save_checkpoint()
             progress.advance(1, model=self.r.kind, loss=terms["loss"], psnr=terms["psnr"],

@@ -63,7 +63,11 @@ def test_two_gloo_ranks_give_the_single_process_loss_curve(capture, tmp_path):
         ddp = np.array([t[key] for t in ranks[0]])
         one = np.array([t[key] for t in single])
         np.testing.assert_allclose(ddp[0], one[0], rtol=1e-5, err_msg=key)  # same model, same batch
-        np.testing.assert_allclose(ddp, one, rtol=5e-3, err_msg=key)
+        # Later steps drift apart by the rounding above, amplified by Adam: measured over seeds
+        # 0-2 at 5 steps, the largest term differs by 0.12-0.52% (0.18-0.36% before rays were
+        # computed per batch), so the curve is held to 1%; a wrong step itself (a rank training
+        # on the wrong share, unsynchronised gradients) is caught exactly by the checks above.
+        np.testing.assert_allclose(ddp, one, rtol=1e-2, err_msg=key)
     # The curve moves (the comparison is not between two constant sequences).
     assert len({round(t["loss"], 6) for t in single}) == steps
 

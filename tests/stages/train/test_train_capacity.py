@@ -1,0 +1,128 @@
+"""The train stage's capacity mode (rule's choice, capacity.json, metrics) and scheduled pruning."""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from avatar.capacity import CaptureStats, choose_capacity
+from avatar.config import AvatarConfig
+from pipeline.errors import ConfigError
+from pipeline.testing import run_stage_for_test
+from stages.train import trainer as trainer_mod
+from stages.train.stage import STAGE, TrainParams, capacity_of
+
+SMALL_AVATAR = {"prims_per_side": 8, "voxels_per_side": 4, "latent_dim": 8, "encoder_hidden": 32,
+                "base_channels": 16, "rgb_channels": [16, 12], "alpha_channels": [8, 4], "geometry_channels": 8,
+                "steps_per_ray": 24}
+BASE = {"avatar": SMALL_AVATAR, "image_width_px": 24, "batch_size": 2, "rays_per_image": 64, "eval_images": 2,
+        "curve_every": 4, "curve_images": 1, "checkpoint_every": 100, "previews": 0, "threads": 1,
+        "held_out_fraction": 1.0, "baseline": False, "lpips": False}
+
+
+@pytest.fixture(scope="module")
+def capture(tmp_path_factory) -> dict[str, Path]:
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from train_synth import make_capture
+
+    return make_capture(tmp_path_factory.mktemp("synth"), width_px=32, cameras=3, frames_per_take=(21, 9))
+
+
+def test_auto_capacity_is_the_rules_choice_and_is_reported(capture, tmp_path):
+    out = run_stage_for_test(STAGE, tmp_path, capture, {**BASE, "capacity": "auto", "iterations": 8,
+                                                          "rays_per_image": 32})
+    metrics = json.loads((out / "metrics.json").read_text())
+    report = json.loads((out / "capacity.json").read_text())
+    inputs = report["inputs"]
+    assert report["mode"] == "auto" and inputs["image_width_px"] == 24 and inputs["image_height_px"] == 32
+    assert 5 < inputs["footprint_px"] <= 24 and inputs["frames"] == metrics["train_frames"]
+    expected = choose_capacity(CaptureStats(**inputs), base=AvatarConfig(**SMALL_AVATAR)).config
+    used = AvatarConfig(**report["used"])
+    assert used == expected
+    from avatar.io import load_trained
+
+    model, _ = load_trained(out / "models" / "ours")
+    assert model.config == expected
+    assert metrics["capacity_auto"] == 1 and metrics["capacity_primitives"] == expected.num_prims
+    assert metrics["capacity_voxel_res"] == expected.voxels_per_side
+    assert metrics["capacity_footprint_px"] == pytest.approx(inputs["footprint_px"])
+    assert metrics["capacity_texel_px"] >= 1.0 and metrics["capacity_parameters"] > 0
+    # Pruning ran at half the iterations; figures for the render speed-up and the image change.
+    assert 0 <= metrics["pruned_primitives"] < expected.num_prims
+    assert metrics["render_seconds_per_image"] > 0 and metrics["prune_render_speedup"] > 0
+    # The report's trade-off series: the learning curve with the chosen configuration marked.
+    tradeoff = json.loads((out / "tradeoffs" / "learning_curve.json").read_text())
+    chosen = [p for p in tradeoff["points"] if p.get("chosen")]
+    assert len(chosen) == 1 and f"N={expected.prims_per_side}" in chosen[0]["series"]
+
+
+def test_nonsense_capture_gives_a_config_error_in_auto_mode(capture):
+    from stages.train.data import load_train_data
+
+    data = load_train_data(capture, 24, logging.getLogger("test"), max_frames=6)
+    data.mattes[:] = 0.0  # no foreground anywhere: no footprint
+    frames = np.arange(len(data.bar))
+    with pytest.raises(ConfigError, match="train.capacity=auto.*footprint_px"):
+        capacity_of(data, frames, TrainParams(capacity="auto"))
+    fixed = capacity_of(data, frames, TrainParams(capacity="fixed"))  # fixed: reported, never fatal
+    assert fixed.config == TrainParams().avatar
+
+
+def test_scheduled_pruning_drops_an_always_empty_primitive_and_keeps_a_visible_one(capture, tmp_path, monkeypatch):
+    from avatar.layout import build_layout
+    from avatar.model import RelightableMVP
+    from stages.train.data import load_train_data
+    from stages.train.stage import _tensors
+
+    data = load_train_data(capture, 24, logging.getLogger("test"))
+    config = AvatarConfig(**SMALL_AVATAR)
+    layout = build_layout(data.vertices.mean(0), data.triangles, config.prims_per_side)
+    tensors = _tensors(data, layout.guide_vertex_ids, torch.device("cpu"))
+    torch.manual_seed(0)
+    model = RelightableMVP(config, layout, data.num_bars)
+    # The primitive at the centre of the UV grid faces the cameras; make another always empty.
+    visible = (config.prims_per_side // 2) * config.prims_per_side + config.prims_per_side // 2
+    empty = visible + 1
+    real_decode = RelightableMVP.decode_geometry
+
+    def decode_with_an_empty_primitive(self, z):
+        geo = real_decode(self, z)
+        mask = torch.ones(geo.density.shape[1], 1, 1, 1)
+        mask[empty] = 0.0
+        geo.density = geo.density * mask
+        return geo
+
+    monkeypatch.setattr(RelightableMVP, "decode_geometry", decode_with_an_empty_primitive)
+    seen: list[int] = []
+    real_raymarch = trainer_mod.raymarch
+
+    def counting_raymarch(prims, *args, **kwargs):
+        seen.append(prims.centre.shape[1])
+        return real_raymarch(prims, *args, **kwargs)
+
+    monkeypatch.setattr(trainer_mod, "raymarch", counting_raymarch)
+    renderer = trainer_mod.Renderer(model, "ours", None, sorted(set(data.bar.tolist())))
+    tr = trainer_mod.ModelTrainer(renderer, tensors, np.arange(len(data.bar)), iterations=12, batch_size=2,
+                                  rays_per_image=128, lr=1e-3, weights=trainer_mod.LossWeights(), seed=0,
+                                  ckpt_path=tmp_path / "c.pt", checkpoint_every=100, spike_factor=10.0,
+                                  log=logging.getLogger("test"),
+                                  prune=trainer_mod.PruneSchedule(at_iteration=6, window=5, max_alpha=0.01))
+
+    class _Progress:
+        def advance(self, *args, **kwargs) -> None:
+            pass
+
+    state = tr.run(_Progress())
+    assert state.prune_done and state.pruned == model.num_pruned > 0
+    assert float(tr.prim_alpha_max[empty]) == 0.0 and float(tr.prim_alpha_max[visible]) > 0.01
+    assert not bool(model.prim_keep[empty]) and bool(model.prim_keep[visible])
+    # Iterations 1-6 raymarch every primitive, 7-12 only the kept ones.
+    assert seen[:6] == [config.num_prims] * 6
+    assert seen[6:] == [config.num_prims - state.pruned] * 6
