@@ -19,12 +19,13 @@ variation to hold, more channels; few frames, a narrow decoder that cannot memor
 
 The default ``min_texel_px = 2`` comes from the measured curve, not from first principles:
 ``benchmarks/bench_capacity.py`` (held-out PSNR against N*M, tiny preset, alice, the same
-training for every size) puts the knee at N*M = 32 (texels of 3 px) after 300 and after 1000
-iterations per size. The next size up, N*M = 64 (texels of 1 px, the principle's own
-choice), is better by a margin that grows with training (0.24 dB after 300 iterations,
-0.54 dB after 1000, ~1.4 dB after the tiny preset's 2000) at 1.2-1.7x the cost per
-iteration: past the knee, but worth it when quality matters more than time
-(``capacity_rule.min_texel_px: 1``). With texels of 1 px the rule also gives the paper's
+training for every size) puts the knee at N*M = 32 (texels of 3 px) after 300, 1000 and
+2000 iterations per size (2000 = the tiny preset's budget: 19.15 / 22.82 / 24.15 / 22.94 dB
+for N*M = 16 / 32 / 64 / 128 at 25 / 19 / 11.5 / 4.1 it/s). The next size up, N*M = 64
+(texels of 1 px, the principle's own choice), is better by a margin that grows with
+training (0.24 dB after 300 iterations, 0.54 dB after 1000, 1.3 dB after 2000) at 1.7x the
+cost per iteration: past the knee, but worth it when quality matters more than time
+(``capacity_rule.min_texel_px: 1``); N*M = 128 is worse than 64 at these budgets. With texels of 1 px the rule also gives the paper's
 N*M = 1024 for a head ~620 px wide in 768 px images. Earlier constants, each moved by a
 measurement: voxels no finer than a pixel (N*M = 128 here) and texels no finer than a pixel
 (knee at 64 on an earlier capture of alice).
