@@ -377,8 +377,6 @@ def render_mirror_images(cam: Camera, sphere_centers_world: np.ndarray, spheres:
     pixel wide), so its pixels are rendered again with ``highlight_supersample`` rays per
     axis: with too few sub-pixel rays its position snaps to the sub-pixel grid.
     """
-    import cv2
-
     ss = params.mirror_supersample
     r = spheres.radius_m
     names = ["room"] + [f"bar{b.id:02d}" for b in bars]
@@ -395,20 +393,9 @@ def render_mirror_images(cam: Camera, sphere_centers_world: np.ndarray, spheres:
         room[hit] = spheres.reflectance * params.room_radiance
         clean["room"][y0:y1, x0:x1] = room.reshape(shape).mean(axis=-1)
         for bar in bars:
-            radiance = np.full(hit.shape, params.background)
-            radiance[hit] = spheres.reflectance * _bar_radiance(bar, p, refl, params)
-            radiance = radiance.reshape(shape)
-            img = radiance.mean(axis=-1)
-            lit = (radiance > params.background).any(axis=-1).astype(np.uint8)
-            lit = cv2.dilate(lit, np.ones((3, 3), np.uint8)).astype(bool)
-            if lit.any():
-                ys, xs = np.nonzero(lit)
-                fine = _pixel_rays_at(cam, np.stack([xs + x0, ys + y0], -1), params.highlight_supersample)
-                fhit, fp, frefl = _sphere_hits(origin, fine.reshape(-1, 3), sphere_centers_world, r)
-                fr = np.full(fhit.shape, params.background)
-                fr[fhit] = spheres.reflectance * _bar_radiance(bar, fp, frefl, params)
-                img[ys, xs] = fr.reshape(len(ys), -1).mean(axis=-1)
-            clean[f"bar{bar.id:02d}"][y0:y1, x0:x1] = img
+            clean[f"bar{bar.id:02d}"][y0:y1, x0:x1] = _bar_highlight(
+                cam, origin, (hit, p, refl), shape, (x0, y0), bar, spheres, sphere_centers_world, params,
+                params.highlight_supersample)
     return {n: _sensor(img, params, rng) for n, img in clean.items()}
 
 
@@ -480,7 +467,21 @@ def render_mirror_window(cam: Camera, box: tuple[int, int, int, int], sphere_cen
         return img
     origin, dirs = _supersampled_rays(cam, params.roi_coarse_supersample, box)
     shape = dirs.shape[:-1]  # [h, w, S]
-    hit, p, refl = _sphere_hits(origin, dirs.reshape(-1, 3), sphere_centers_world, r)
+    hits = _sphere_hits(origin, dirs.reshape(-1, 3), sphere_centers_world, r)
+    return _bar_highlight(cam, origin, hits, shape, (x0, y0), bar, spheres, sphere_centers_world, params,
+                          params.roi_highlight_supersample)
+
+
+def _bar_highlight(cam: Camera, origin: np.ndarray, hits: tuple, shape: tuple, corner: tuple[int, int], bar,
+                   spheres, sphere_centers_world: np.ndarray, params, fine_supersample: int) -> np.ndarray:
+    """One bar's reflection in a window [h, w]: the supersampled render ``hits`` (hit, point,
+    reflected direction of every ray, rays shaped ``shape`` = [h, w, S]), re-rendered with
+    ``fine_supersample`` rays per pixel where the bar's highlight (grown by a pixel) lies.
+    ``corner``: the window's top-left pixel (x0, y0) in the camera's image."""
+    import cv2
+
+    hit, p, refl = hits
+    x0, y0 = corner
     radiance = np.full(hit.shape, params.background)
     radiance[hit] = spheres.reflectance * _bar_radiance(bar, p, refl, params)
     radiance = radiance.reshape(shape)
@@ -489,8 +490,8 @@ def render_mirror_window(cam: Camera, box: tuple[int, int, int, int], sphere_cen
     lit = cv2.dilate(lit, np.ones((3, 3), np.uint8)).astype(bool)
     if lit.any():
         ys, xs = np.nonzero(lit)
-        fine = _pixel_rays_at(cam, np.stack([xs + x0, ys + y0], -1), params.roi_highlight_supersample)
-        fhit, fp, frefl = _sphere_hits(origin, fine.reshape(-1, 3), sphere_centers_world, r)
+        fine = _pixel_rays_at(cam, np.stack([xs + x0, ys + y0], -1), fine_supersample)
+        fhit, fp, frefl = _sphere_hits(origin, fine.reshape(-1, 3), sphere_centers_world, spheres.radius_m)
         fr = np.full(fhit.shape, params.background)
         fr[fhit] = spheres.reflectance * _bar_radiance(bar, fp, frefl, params)
         img[ys, xs] = fr.reshape(len(ys), -1).mean(axis=-1)
