@@ -38,3 +38,19 @@ def tiny_model(seed: int = 0) -> tuple[RelightableMVP, np.ndarray]:
 def random_head():
     torch.set_num_threads(1)
     return tiny_model()
+
+
+def write_relight_inputs(root, expressions: int = 1) -> dict:
+    """The relight stage's input folders under ``root`` for ``tiny_model``: the trained model, one
+    tracked mesh and a scan set of ``expressions`` poses (neutral, then slightly scaled copies)."""
+    from avatar.io import save_trained
+
+    model, verts = tiny_model()
+    save_trained(root / "train" / "models" / "ours", model, "ours")
+    (root / "track").mkdir()
+    np.savez(root / "track" / "meshes.npz", vertices=verts[None])
+    (root / "capture" / "scans").mkdir(parents=True)
+    names = ["neutral", "smile", "frown", "blink"][:expressions]
+    np.savez(root / "capture" / "scans" / "scans.npz", names=np.array(names),
+             vertices=np.stack([verts * (1.0 + 0.01 * k) for k in range(expressions)]), faces=np.zeros((1, 3), int))
+    return {k: root / k for k in ("train", "track", "capture")}

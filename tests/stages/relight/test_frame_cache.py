@@ -6,13 +6,11 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-import numpy as np
 import pytest
 
-from avatar.io import save_trained
 from pipeline.testing import run_stage_for_test
 from stages.relight.stage import STAGE
-from tests.stages.relight.conftest import tiny_model
+from tests.stages.relight.conftest import write_relight_inputs
 
 ONLY = {"envmaps": ["blender-cc0/studio.exr"], "directions": 16, "orbit_frames": 0, "turntable_frames": 0,
         "dolly_zoom_frames": 0, "naive_timing_frames": 0, "width_px": 12, "height_px": 16, "steps_per_ray": 8}
@@ -20,15 +18,7 @@ ONLY = {"envmaps": ["blender-cc0/studio.exr"], "directions": 16, "orbit_frames":
 
 @pytest.fixture(scope="module")
 def inputs(tmp_path_factory):
-    root = tmp_path_factory.mktemp("relight_cache_inputs")
-    model, verts = tiny_model()
-    save_trained(root / "train" / "models" / "ours", model, "ours")
-    (root / "track").mkdir()
-    np.savez(root / "track" / "meshes.npz", vertices=verts[None])
-    (root / "capture" / "scans").mkdir(parents=True)
-    np.savez(root / "capture" / "scans" / "scans.npz", names=np.array(["neutral"]), vertices=verts[None],
-             faces=np.zeros((1, 3), int))
-    return {k: root / k for k in ("train", "track", "capture")}
+    return write_relight_inputs(tmp_path_factory.mktemp("relight_cache_inputs"), expressions=1)
 
 
 def _run(inputs, root: Path, work: str, params: dict, share_cache_of: str | None = None) -> tuple[Path, dict]:

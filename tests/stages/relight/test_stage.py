@@ -4,15 +4,13 @@ from __future__ import annotations
 
 import json
 
-import numpy as np
 import pytest
 
-from avatar.io import save_trained
 from pipeline.errors import InputError
 from pipeline.testing import run_stage_for_test
 from stages.relight.stage import STAGE
 from stages.relight.stage import ASSETS as STAGE_ASSETS
-from tests.stages.relight.conftest import tiny_model
+from tests.stages.relight.conftest import write_relight_inputs
 
 FAST = {"envmaps": ["blender-cc0/studio.exr"], "envmap_frames": 2, "directions": 32, "orbit_frames": 3,
         "turntable_frames": 2, "dolly_zoom_frames": 2, "width_px": 16, "height_px": 20, "steps_per_ray": 12}
@@ -20,15 +18,7 @@ FAST = {"envmaps": ["blender-cc0/studio.exr"], "envmap_frames": 2, "directions":
 
 @pytest.fixture(scope="module")
 def inputs(tmp_path_factory):
-    root = tmp_path_factory.mktemp("relight_inputs")
-    model, verts = tiny_model()
-    save_trained(root / "train" / "models" / "ours", model, "ours")
-    (root / "track").mkdir()
-    np.savez(root / "track" / "meshes.npz", vertices=verts[None])
-    (root / "capture" / "scans").mkdir(parents=True)
-    np.savez(root / "capture" / "scans" / "scans.npz", names=np.array(["neutral", "smile"]),
-             vertices=np.stack([verts, verts * 1.01]), faces=np.zeros((1, 3), int))
-    return {k: root / k for k in ("train", "track", "capture")}
+    return write_relight_inputs(tmp_path_factory.mktemp("relight_inputs"), expressions=2)
 
 
 def test_stage_writes_every_sequence_and_metrics(inputs, tmp_path):
