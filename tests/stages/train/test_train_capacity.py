@@ -75,7 +75,12 @@ def test_nonsense_capture_gives_a_config_error_in_auto_mode(capture):
     assert fixed.config == TrainParams().avatar
 
 
-def test_scheduled_pruning_drops_an_always_empty_primitive_and_keeps_a_visible_one(capture, tmp_path, monkeypatch):
+def _trainer_with_an_empty_primitive(capture, tmp_path, monkeypatch, checkpoint_every: int):
+    """A 12-iteration trainer pruning at iteration 6, whose model has one always-empty primitive.
+
+    Returns the trainer, the model's config, the visible and the empty primitive's indices and
+    the list that records how many primitives every raymarch got.
+    """
     from avatar.layout import build_layout
     from avatar.model import RelightableMVP
     from stages.train.data import load_train_data
@@ -111,14 +116,20 @@ def test_scheduled_pruning_drops_an_always_empty_primitive_and_keeps_a_visible_o
     renderer = trainer_mod.Renderer(model, "ours", None, sorted(set(data.bar.tolist())))
     tr = trainer_mod.ModelTrainer(renderer, tensors, np.arange(len(data.bar)), iterations=12, batch_size=2,
                                   rays_per_image=128, lr=1e-3, weights=trainer_mod.LossWeights(), seed=0,
-                                  ckpt_path=tmp_path / "c.pt", checkpoint_every=100, spike_factor=10.0,
+                                  ckpt_path=tmp_path / "c.pt", checkpoint_every=checkpoint_every, spike_factor=10.0,
                                   log=logging.getLogger("test"),
                                   prune=trainer_mod.PruneSchedule(at_iteration=6, window=5, max_alpha=0.01))
+    return tr, config, visible, empty, seen
 
-    class _Progress:
-        def advance(self, *args, **kwargs) -> None:
-            pass
 
+class _Progress:
+    def advance(self, *args, **kwargs) -> None:
+        pass
+
+
+def test_scheduled_pruning_drops_an_always_empty_primitive_and_keeps_a_visible_one(capture, tmp_path, monkeypatch):
+    tr, config, visible, empty, seen = _trainer_with_an_empty_primitive(capture, tmp_path, monkeypatch, 100)
+    model = tr.model
     state = tr.run(_Progress())
     assert state.prune_done and state.pruned == model.num_pruned > 0
     assert float(tr.prim_alpha_max[empty]) == 0.0 and float(tr.prim_alpha_max[visible]) > 0.01
@@ -126,3 +137,26 @@ def test_scheduled_pruning_drops_an_always_empty_primitive_and_keeps_a_visible_o
     # Iterations 1-6 raymarch every primitive, 7-12 only the kept ones.
     assert seen[:6] == [config.num_prims] * 6
     assert seen[6:] == [config.num_prims - state.pruned] * 6
+
+
+def test_a_rollback_to_a_state_saved_before_pruning_keeps_the_primitives_pruned(capture, tmp_path, monkeypatch):
+    # The last good state is the checkpoint of iteration 5, before pruning at 6; a NaN at
+    # iteration 9 restores it, and the primitives pruned at 6 must stay pruned.
+    tr, config, visible, empty, seen = _trainer_with_an_empty_primitive(capture, tmp_path, monkeypatch, 5)
+    real_losses = trainer_mod.ModelTrainer.losses
+    calls = {"n": 0}
+
+    def nan_at_iteration_9(self, *args):
+        calls["n"] += 1
+        total, terms = real_losses(self, *args)
+        if calls["n"] == 9:
+            return total * float("nan"), {**terms, "loss": float("nan")}
+        return total, terms
+
+    monkeypatch.setattr(trainer_mod.ModelTrainer, "losses", nan_at_iteration_9)
+    state = tr.run(_Progress())
+    assert state.rollbacks == 1 and state.prune_done and state.pruned > 0
+    assert not bool(tr.model.prim_keep[empty]) and bool(tr.model.prim_keep[visible])
+    assert int((~tr.model.prim_keep).sum()) == state.pruned
+    # Every iteration after pruning, the rolled-back one and those after it included, raymarches only the kept ones.
+    assert seen[6:] == [config.num_prims - state.pruned] * (len(seen) - 6)
