@@ -54,3 +54,21 @@ def write_relight_inputs(root, expressions: int = 1) -> dict:
     np.savez(root / "capture" / "scans" / "scans.npz", names=np.array(names),
              vertices=np.stack([verts * (1.0 + 0.01 * k) for k in range(expressions)]), faces=np.zeros((1, 3), int))
     return {k: root / k for k in ("train", "track", "capture")}
+
+
+def fail_on_call(monkeypatch, n: int):
+    """Make the ``n``-th ``HeadRenderer.render_lights`` call raise (a GPU failing mid-sequence);
+    returns the original method, to put back with ``monkeypatch.setattr`` when the test needs it."""
+    from stages.relight.render import HeadRenderer
+
+    original = HeadRenderer.render_lights
+    calls = {"n": 0}
+
+    def flaky(self, *args, **kwargs):
+        calls["n"] += 1
+        if calls["n"] == n:
+            raise RuntimeError("GPU fell off the bus")
+        return original(self, *args, **kwargs)
+
+    monkeypatch.setattr(HeadRenderer, "render_lights", flaky)
+    return original

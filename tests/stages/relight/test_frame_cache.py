@@ -10,7 +10,7 @@ import pytest
 
 from pipeline.testing import run_stage_for_test
 from stages.relight.stage import STAGE
-from tests.stages.relight.conftest import write_relight_inputs
+from tests.stages.relight.conftest import fail_on_call, write_relight_inputs
 
 ONLY = {"envmaps": ["blender-cc0/studio.exr"], "directions": 16, "orbit_frames": 0, "turntable_frames": 0,
         "dolly_zoom_frames": 0, "naive_timing_frames": 0, "width_px": 12, "height_px": 16, "steps_per_ray": 8}
@@ -49,18 +49,9 @@ def test_more_frames_render_only_the_new_ones_and_equal_an_uncached_run(inputs, 
 def test_frames_rendered_before_a_failure_are_reused(inputs, tmp_path, monkeypatch):
     from stages.relight.render import HeadRenderer
 
-    original = HeadRenderer.render_lights
-    calls = {"n": 0}
-
-    def flaky(self, *args, **kwargs):
-        calls["n"] += 1
-        if calls["n"] == 3:
-            raise RuntimeError("GPU fell off the bus")
-        return original(self, *args, **kwargs)
-
     params = {**ONLY, "envmaps": [], "point_lights": [(0.4, 0.2, 1.0), (-0.5, 0.1, 0.9), (0.0, 0.6, 0.8),
                                                       (0.3, -0.2, 1.1)]}
-    monkeypatch.setattr(HeadRenderer, "render_lights", flaky)
+    original = fail_on_call(monkeypatch, 3)
     with pytest.raises(RuntimeError, match="fell off"):
         _run(inputs, tmp_path, "a", params)
     monkeypatch.setattr(HeadRenderer, "render_lights", original)

@@ -10,7 +10,7 @@ from pipeline.errors import InputError
 from pipeline.testing import run_stage_for_test
 from stages.relight.stage import STAGE
 from stages.relight.stage import ASSETS as STAGE_ASSETS
-from tests.stages.relight.conftest import write_relight_inputs
+from tests.stages.relight.conftest import fail_on_call, write_relight_inputs
 
 FAST = {"envmaps": ["blender-cc0/studio.exr"], "envmap_frames": 2, "directions": 32, "orbit_frames": 3,
         "turntable_frames": 2, "dolly_zoom_frames": 2, "width_px": 16, "height_px": 20, "steps_per_ray": 12}
@@ -53,18 +53,7 @@ def test_bad_envmap_is_a_clear_input_error(inputs, tmp_path):
 
 
 def test_a_failure_mid_sequence_keeps_the_frames_already_rendered(inputs, tmp_path, monkeypatch):
-    from stages.relight.render import HeadRenderer
-
-    original = HeadRenderer.render_lights
-    calls = {"n": 0}
-
-    def flaky(self, *args, **kwargs):
-        calls["n"] += 1
-        if calls["n"] == 3:
-            raise RuntimeError("GPU fell off the bus")
-        return original(self, *args, **kwargs)
-
-    monkeypatch.setattr(HeadRenderer, "render_lights", flaky)
+    fail_on_call(monkeypatch, 3)
     params = {**FAST, "envmaps": [], "orbit_frames": 5, "turntable_frames": 0, "dolly_zoom_frames": 0}
     with pytest.raises(RuntimeError, match="fell off"):
         run_stage_for_test(STAGE, tmp_path, inputs, params)

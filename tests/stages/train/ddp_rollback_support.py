@@ -10,7 +10,7 @@ import numpy as np
 import torch
 import torch.distributed as dist
 
-from ddp_support import SMALL_AVATAR
+from train_synth import small_model
 
 
 def _params_digest(model: torch.nn.Module) -> str:
@@ -27,12 +27,8 @@ def rollback_rank(rank: int, world_size: int, init_file: str, capture: dict[str,
                   iterations: int, nan_at: int, spike_at: int) -> None:
     """Train ``iterations`` steps (checkpoint every 2) with rank 1's loss made NaN at ``nan_at`` and
     1000x at ``spike_at``; writes, per iteration, the model digest, rollbacks and lr to ``rank<r>.json``."""
-    from avatar.config import AvatarConfig
-    from avatar.layout import build_layout
-    from avatar.model import RelightableMVP
     from stages.train import trainer as trainer_mod
     from stages.train.data import load_train_data
-    from stages.train.stage import _tensors
 
     real_losses = trainer_mod.ModelTrainer.losses
 
@@ -51,12 +47,7 @@ def rollback_rank(rank: int, world_size: int, init_file: str, capture: dict[str,
     try:
         log = logging.getLogger(f"rollback.rank{rank}")
         data = load_train_data(capture, 24, log)
-        config = AvatarConfig(**SMALL_AVATAR)
-        layout = build_layout(data.vertices.mean(0), data.triangles, config.prims_per_side)
-        tensors = _tensors(data, layout.guide_vertex_ids, torch.device("cpu"))
-        torch.manual_seed(0)
-        model = RelightableMVP(config, layout, data.num_bars)
-        renderer = trainer_mod.Renderer(model, "ours", None, sorted(set(data.bar.tolist())))
+        _, tensors, model, renderer = small_model(data)
         record: list[dict] = []
         trainer = None
 

@@ -10,30 +10,19 @@ import numpy as np
 import torch
 import torch.distributed as dist
 
-SMALL_AVATAR = {"prims_per_side": 8, "voxels_per_side": 4, "latent_dim": 8, "encoder_hidden": 32,
-                "base_channels": 16, "rgb_channels": [16, 12], "alpha_channels": [8, 4], "geometry_channels": 8,
-                "steps_per_ray": 12}
+from train_synth import small_model
 
 
 def loss_curve(capture: dict[str, Path], workdir: Path, steps: int, batch_size: int, rank: int = 0,
                world_size: int = 1) -> list[dict[str, float]]:
     """Loss terms of ``steps`` training iterations (the global batch's, on every rank)."""
-    from avatar.config import AvatarConfig
-    from avatar.layout import build_layout
-    from avatar.model import RelightableMVP
     from stages.train import trainer as trainer_mod
     from stages.train.data import load_train_data
-    from stages.train.stage import _tensors
 
     torch.set_num_threads(1)
     log = logging.getLogger("test")
     data = load_train_data(capture, 24, log)
-    config = AvatarConfig(**SMALL_AVATAR)
-    layout = build_layout(data.vertices.mean(0), data.triangles, config.prims_per_side)
-    tensors = _tensors(data, layout.guide_vertex_ids, torch.device("cpu"))
-    torch.manual_seed(0)
-    model = RelightableMVP(config, layout, data.num_bars)
-    renderer = trainer_mod.Renderer(model, "ours", None, sorted(set(data.bar.tolist())))
+    _, tensors, model, renderer = small_model(data)
     tr = trainer_mod.ModelTrainer(renderer, tensors, np.arange(len(data.bar)), iterations=steps,
                                   batch_size=batch_size, rays_per_image=64, lr=3e-3,
                                   weights=trainer_mod.LossWeights(), seed=0, ckpt_path=workdir / f"c{world_size}.pt",

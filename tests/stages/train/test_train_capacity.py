@@ -16,10 +16,8 @@ from pipeline.errors import ConfigError
 from pipeline.testing import run_stage_for_test
 from stages.train import trainer as trainer_mod
 from stages.train.stage import STAGE, TrainParams, capacity_of
+from tests.stages.train.train_synth import SMALL_AVATAR, small_model
 
-SMALL_AVATAR = {"prims_per_side": 8, "voxels_per_side": 4, "latent_dim": 8, "encoder_hidden": 32,
-                "base_channels": 16, "rgb_channels": [16, 12], "alpha_channels": [8, 4], "geometry_channels": 8,
-                "steps_per_ray": 24}
 BASE = {"avatar": SMALL_AVATAR, "image_width_px": 24, "batch_size": 2, "rays_per_image": 64, "eval_images": 2,
         "curve_every": 4, "curve_images": 1, "checkpoint_every": 100, "previews": 0, "threads": 1,
         "held_out_fraction": 1.0, "baseline": False, "lpips": False}
@@ -81,17 +79,11 @@ def _trainer_with_an_empty_primitive(capture, tmp_path, monkeypatch, checkpoint_
     Returns the trainer, the model's config, the visible and the empty primitive's indices and
     the list that records how many primitives every raymarch got.
     """
-    from avatar.layout import build_layout
     from avatar.model import RelightableMVP
     from stages.train.data import load_train_data
-    from stages.train.stage import _tensors
 
     data = load_train_data(capture, 24, logging.getLogger("test"))
-    config = AvatarConfig(**SMALL_AVATAR)
-    layout = build_layout(data.vertices.mean(0), data.triangles, config.prims_per_side)
-    tensors = _tensors(data, layout.guide_vertex_ids, torch.device("cpu"))
-    torch.manual_seed(0)
-    model = RelightableMVP(config, layout, data.num_bars)
+    config, tensors, model, renderer = small_model(data)
     # The primitive at the centre of the UV grid faces the cameras; make another always empty.
     visible = (config.prims_per_side // 2) * config.prims_per_side + config.prims_per_side // 2
     empty = visible + 1
@@ -113,7 +105,6 @@ def _trainer_with_an_empty_primitive(capture, tmp_path, monkeypatch, checkpoint_
         return real_raymarch(prims, *args, **kwargs)
 
     monkeypatch.setattr(trainer_mod, "raymarch", counting_raymarch)
-    renderer = trainer_mod.Renderer(model, "ours", None, sorted(set(data.bar.tolist())))
     tr = trainer_mod.ModelTrainer(renderer, tensors, np.arange(len(data.bar)), iterations=12, batch_size=2,
                                   rays_per_image=128, lr=1e-3, weights=trainer_mod.LossWeights(), seed=0,
                                   ckpt_path=tmp_path / "c.pt", checkpoint_every=checkpoint_every, spike_factor=10.0,

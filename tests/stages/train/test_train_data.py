@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from pipeline.errors import InputError
-from scene.camera import Camera, Rigid, look_at
+from scene.camera import Camera, look_at
 from stages.train.data import _pixel_directions, _stabilised_cameras, load_train_data
 from tests.stages.train.train_synth import make_capture
 
@@ -71,23 +71,14 @@ def test_training_on_spilled_images_takes_the_same_steps_as_on_resident_ones(cap
     """The memory-mapped path (paper-size captures) gathers the same pixels and rays as the in-memory one."""
     import torch
 
-    from avatar.config import AvatarConfig
-    from avatar.layout import build_layout
-    from avatar.model import RelightableMVP
     from stages.train import trainer as trainer_mod
-    from stages.train.stage import _tensors
-    from tests.stages.train.test_train_stage import SMALL_AVATAR
+    from tests.stages.train.train_synth import small_model
 
     def losses(spill: bool) -> list[float]:
-        torch.manual_seed(0)
         data = load_train_data(capture, 24, logging.getLogger("test"), resident_limit_gb=0.0 if spill else 8.0,
                                spill_dir=tmp_path / f"spill{int(spill)}")
         assert data.spilled == spill
-        config = AvatarConfig(**SMALL_AVATAR)
-        layout = build_layout(data.vertices.mean(0), data.triangles, config.prims_per_side)
-        tensors = _tensors(data, layout.guide_vertex_ids, torch.device("cpu"))
-        model = RelightableMVP(config, layout, data.num_bars)
-        renderer = trainer_mod.Renderer(model, "ours", None, sorted(set(data.bar.tolist())))
+        _, tensors, model, renderer = small_model(data)
         tr = trainer_mod.ModelTrainer(renderer, tensors, np.arange(len(data.bar)), iterations=4, batch_size=2,
                                       rays_per_image=64, lr=3e-3, weights=trainer_mod.LossWeights(), seed=0,
                                       ckpt_path=tmp_path / f"c{int(spill)}.pt", checkpoint_every=100,

@@ -24,7 +24,8 @@ if not dist.is_available() or not dist.is_gloo_available():
     pytest.skip("torch.distributed with the gloo backend is not available", allow_module_level=True)
 
 sys.path.insert(0, str(Path(__file__).parent))
-from ddp_support import SMALL_AVATAR, loss_curve, rank_main  # noqa: E402
+from ddp_support import loss_curve, rank_main  # noqa: E402
+from train_synth import SMALL_AVATAR  # noqa: E402
 
 from pipeline.errors import ConfigError  # noqa: E402
 from pipeline.testing import run_stage_for_test  # noqa: E402

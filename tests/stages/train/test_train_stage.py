@@ -16,10 +16,8 @@ from pipeline.testing import run_stage_for_test
 from stages.train import trainer as trainer_mod
 from stages.train.splits import SPLITS
 from stages.train.stage import STAGE
+from tests.stages.train.train_synth import SMALL_AVATAR, small_model
 
-SMALL_AVATAR = {"prims_per_side": 8, "voxels_per_side": 4, "latent_dim": 8, "encoder_hidden": 32,
-                "base_channels": 16, "rgb_channels": [16, 12], "alpha_channels": [8, 4], "geometry_channels": 8,
-                "steps_per_ray": 12}
 BASE = {"avatar": SMALL_AVATAR, "image_width_px": 24, "batch_size": 2, "rays_per_image": 64, "eval_images": 2,
         "curve_every": 6, "curve_images": 1, "checkpoint_every": 4, "previews": 1, "threads": 1,
         "held_out_fraction": 1.0}  # the whole short "speech" take: every split gets frames
@@ -90,19 +88,10 @@ def test_resume_after_kill_continues_the_same_run(capture, tmp_path, monkeypatch
 
 
 def test_few_iterations_lower_the_loss(capture, tmp_path):
-    from avatar.config import AvatarConfig
-    from avatar.layout import build_layout
-    from avatar.model import RelightableMVP
     from stages.train.data import load_train_data
-    from stages.train.stage import _tensors
 
-    torch.manual_seed(0)
     data = load_train_data(capture, 24, logging.getLogger("test"))
-    config = AvatarConfig(**SMALL_AVATAR)
-    layout = build_layout(data.vertices.mean(0), data.triangles, config.prims_per_side)
-    tensors = _tensors(data, layout.guide_vertex_ids, torch.device("cpu"))
-    model = RelightableMVP(config, layout, data.num_bars)
-    renderer = trainer_mod.Renderer(model, "ours", None, sorted(set(data.bar.tolist())))
+    config, tensors, model, renderer = small_model(data)
     tr = trainer_mod.ModelTrainer(renderer, tensors, np.arange(len(data.bar)), iterations=40, batch_size=2,
                                   rays_per_image=128, lr=3e-3, weights=trainer_mod.LossWeights(), seed=0,
                                   ckpt_path=tmp_path / "c.pt", checkpoint_every=100, spike_factor=10.0,

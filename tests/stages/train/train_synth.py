@@ -126,3 +126,31 @@ def make_capture(root: Path, width_px: int = 48, cameras: int = 6, frames_per_ta
         {"id": b.id, "center_world": (np.array(b.center_m) + noise[b.id]).tolist(), "axis_world": list(b.axis),
          "length_m": b.length_m, "intensity": 1.0} for b in bars]}))
     return out
+
+
+# The small relightable head the train tests train (8 x 8 primitives of 4^3 voxels).
+SMALL_AVATAR = {"prims_per_side": 8, "voxels_per_side": 4, "latent_dim": 8, "encoder_hidden": 32,
+                "base_channels": 16, "rgb_channels": [16, 12], "alpha_channels": [8, 4], "geometry_channels": 8,
+                "steps_per_ray": 12}
+
+
+def small_model(data, seed: int = 0):
+    """``SMALL_AVATAR`` laid out on ``data``'s mean mesh, with its training tensors (CPU) and renderer.
+
+    Returns ``(config, tensors, model, renderer)``; the model's weights come from ``torch.manual_seed(seed)``.
+    """
+    import torch
+
+    from avatar.config import AvatarConfig
+    from avatar.layout import build_layout
+    from avatar.model import RelightableMVP
+    from stages.train import trainer as trainer_mod
+    from stages.train.stage import _tensors
+
+    config = AvatarConfig(**SMALL_AVATAR)
+    layout = build_layout(data.vertices.mean(0), data.triangles, config.prims_per_side)
+    tensors = _tensors(data, layout.guide_vertex_ids, torch.device("cpu"))
+    torch.manual_seed(seed)
+    model = RelightableMVP(config, layout, data.num_bars)
+    renderer = trainer_mod.Renderer(model, "ours", None, sorted(set(data.bar.tolist())))
+    return config, tensors, model, renderer
