@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import math
 
+from typing import Literal
+
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 
@@ -28,6 +30,13 @@ class AvatarConfig(BaseModel):
     steps_per_ray: int = Field(32, description="Raymarch samples per ray over its span through the union of primitive boxes.")
     prim_overlap: float = Field(1.6, description="Primitive edge length as a multiple of the spacing of neighbouring guide points.")
     layout_theta_deg: float = Field(105.0, description="Half-width, in degrees around +z, of the cylindrical UV layout over the head.")
+    direction_frame: Literal["world", "primitive"] = Field(
+        "world",
+        description="Axes in which the per-primitive view and light directions are fed to the appearance branch: "
+                    "'world' (head space, as the paper) or 'primitive' (each primitive's own rotated axes, so the "
+                    "cosine to the surface normal is one input channel everywhere on the UV layout). Both models' "
+                    "view directions follow it. The same vectors either way; 'primitive' measured +0.1 to +0.5 dB "
+                    "held-out PSNR on alice (see configs/presets/tiny.yaml).")
     light_basis: int = Field(0, description="TRAvatar*: number of training lights in the fixed one-hot light basis (0 = ours).")
 
     @model_validator(mode="after")

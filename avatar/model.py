@@ -235,10 +235,19 @@ class RelightableMVP(nn.Module):
         b, n, m = raw_rgb.shape[0], self.n, self.m
         return raw_rgb.view(b, m, 3, n, m, n, m).permute(0, 3, 5, 1, 4, 6, 2).reshape(b, n * n, m, m, m, 3)
 
+    def _directions(self, geometry: DecodedGeometry, points: torch.Tensor) -> torch.Tensor:
+        """Unit directions [B, P, 3] from each primitive centre to ``points`` [B, 3], in ``config.direction_frame``."""
+        d = F.normalize(points[:, None] - geometry.centre, dim=-1)  # [B, P, 3] head space
+        if self.config.direction_frame == "primitive":
+            # R_k^T d: the primitive's axes are its guide triangle's tangent frame (plus the learnt
+            # rotation), so the third component is the cosine to the surface normal.
+            d = (d[..., None, :] * geometry.rotation.transpose(-1, -2)).sum(-1)  # [B, P, 3]
+        return d
+
     def direction_image(self, geometry: DecodedGeometry, cam_pos: torch.Tensor, light_pos: torch.Tensor) -> torch.Tensor:
         """The paper's conditioning image I [B, 6, N*M, N*M]: unit v_k = p_cam - c_k and l_k = p_light - c_k."""
-        view = F.normalize(cam_pos[:, None] - geometry.centre, dim=-1)  # [B, P, 3]
-        light = F.normalize(light_pos[:, None] - geometry.centre, dim=-1)  # [B, P, 3]
+        view = self._directions(geometry, cam_pos)  # [B, P, 3]
+        light = self._directions(geometry, light_pos)  # [B, P, 3]
         return self._tile(torch.cat([view, light], -1))
 
     def decode_rgb(self, geometry: DecodedGeometry, cam_pos: torch.Tensor, light_pos: torch.Tensor | None = None,
@@ -258,7 +267,7 @@ class RelightableMVP(nn.Module):
         else:
             if light_weights is None:
                 raise ValueError("decode_rgb: the TRAvatar* model needs light_weights [B, L]")
-            view = self._tile(F.normalize(cam_pos[:, None] - geometry.centre, dim=-1))  # [B, 3, NM, NM]
+            view = self._tile(self._directions(geometry, cam_pos))  # [B, 3, NM, NM]
 
             def cond(size: int) -> torch.Tensor:
                 v = F.interpolate(view, size=(size, size), mode="bilinear", antialias=True, align_corners=False)

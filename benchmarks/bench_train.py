@@ -104,9 +104,14 @@ def main() -> dict:
         torch.set_num_threads(1)
     results: dict = {"device": torch.cuda.get_device_name() if cuda else "cpu",
                      "threads": torch.get_num_threads()}
-    tiny = _measure(AvatarConfig.tiny(), 64, batch=4, rays=256, iterations=10, device=device)
+    from benchmarks.bench_capacity import _tiny_train_params
+
+    preset = _tiny_train_params()
+    batch, rays = int(preset["batch_size"]), int(preset["rays_per_image"])
+    tiny = _measure(AvatarConfig.tiny(), 64, batch=batch, rays=rays, iterations=10, device=device)
     results["tiny"] = tiny
-    print(f"tiny  (N=16, M=4, batch 4 x 256 rays, {tiny['render_width_px']}x{tiny['render_height_px']} px): "
+    print(f"tiny  (N=16, M=4, the tiny preset's batch {batch} x {rays} rays, "
+          f"{tiny['render_width_px']}x{tiny['render_height_px']} px): "
           f"{tiny['iterations_per_second']:.2f} it/s, peak {tiny['peak_memory_mb']:.0f} MB, "
           f"render {tiny['render_seconds_per_image'] * 1000:.0f} ms/image")
     if cuda:

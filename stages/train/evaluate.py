@@ -71,4 +71,11 @@ def results_table(metrics: dict[str, float], models: list[str]) -> str:
                 v = metrics.get(f"{m}_{split}_{c}")
                 cells.append("n/a" if v is None else (f"{v:.2f}" if c == "psnr" else f"{v:.4f}"))
         lines.append(f"| {title} | " + " | ".join(cells) + " |")
+    if any(f"{m}_train_psnr" in metrics for m in models):
+        # PSNR on training images: how well the run fits what it saw (the other columns are not computed).
+        cells = []
+        for m in models:
+            v = metrics.get(f"{m}_train_psnr")
+            cells += ["n/a" if v is None else f"{v:.2f}"] + ["-"] * (len(cols) - 1)
+        lines.append("| training images (fit) | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"

@@ -85,6 +85,11 @@ class TrainParams(StageParams):
     held_out_bars: int = Field(3, ge=1, description="Interior bars held out for the novel-light split.")
     held_out_take: str = Field("", description="Take whose final segment is the novel performance ('' = the last take).")
     held_out_fraction: float = Field(0.5, gt=0, le=1, description="Final fraction of that take held out (1 = all of it).")
+    fit_frames: int = Field(0, ge=0, description="Diagnostic: optimise on only the first K training frames (all "
+                            "their cameras; 0 = every training frame). With 1 it measures how well the model's "
+                            "capacity can fit one frame in the iteration budget (train_psnr), an upper bound for "
+                            "the held-out figures; the layout, light basis and capacity still come from every "
+                            "training frame.")
     eval_images: int = Field(12, ge=1, description="Held-out images rendered per split for the metrics.")
     lpips: bool = Field(True, description="Compute LPIPS (AlexNet weights from assets/lpips).")
     curve_every: int = Field(100, ge=0, description="Iterations between learning-curve points (0 = none).")
@@ -215,6 +220,7 @@ def train(ctx: StageContext, rank: int = 0, world_size: int = 1, device: torch.d
                           avatar.layout_theta_deg, avatar.prim_overlap)
     tensors = _tensors(data, layout.guide_vertex_ids, device)
     basis_bars = sorted(int(b) for b in np.unique(data.bar[train_frames]))
+    fitted_frames = train_frames[:params.fit_frames] if params.fit_frames else train_frames
     basis = LightBasis(np.stack([bar_dirs[b] for b in basis_bars]))
     num_cams = len(data.camera_names)
     pairs = {s: eval_pairs(np.flatnonzero(splits.mask(s)), num_cams, params.eval_images) for s in SPLITS}
@@ -244,7 +250,7 @@ def train(ctx: StageContext, rank: int = 0, world_size: int = 1, device: torch.d
             return image_metrics(pred, _targets(tensors, curve_pairs), scale=True)["psnr"]
 
         iterations = params.iterations if kind == "ours" else (params.baseline_iterations or params.iterations)
-        trainer = ModelTrainer(renderer, tensors, train_frames, iterations=iterations, batch_size=params.batch_size,
+        trainer = ModelTrainer(renderer, tensors, fitted_frames, iterations=iterations, batch_size=params.batch_size,
                                rays_per_image=params.rays_per_image, lr=params.lr, weights=weights,
                                seed=params.seed, ckpt_path=ckpt_dir / f"{kind}.pt",
                                checkpoint_every=params.checkpoint_every, spike_factor=params.spike_factor,
@@ -271,6 +277,11 @@ def train(ctx: StageContext, rank: int = 0, world_size: int = 1, device: torch.d
                  "held_out_bars": list(splits.held_out_bars),
                  "bar_intensity": {int(b): float(torch.exp(model.log_bar_intensity[b]).detach()) for b in basis_bars}}
         save_trained(ctx.out / "models" / kind, model, kind, extra)
+        # The fit on training images (seen frames, cameras and lights): next to the held-out
+        # figures it tells underfitting (both low) from overfitting (a large gap).
+        fit_pairs = eval_pairs(fitted_frames, num_cams, params.eval_images)
+        pred, _ = renderer.render_images(tensors, fit_pairs)
+        metrics[f"{kind}_train_psnr"] = image_metrics(pred, _targets(tensors, fit_pairs), scale=False)["psnr"]
         renders[kind] = {}
         for split in SPLITS:
             if not pairs[split]:
@@ -296,6 +307,7 @@ def train(ctx: StageContext, rank: int = 0, world_size: int = 1, device: torch.d
     metrics["iterations_per_second"] = metrics["ours_iterations"] / max(metrics["ours_seconds"], 1e-9)
     metrics["peak_memory_mb"] = _peak_memory_mb(device)
     metrics["train_frames"] = int(len(train_frames))
+    metrics["fitted_frames"] = int(len(fitted_frames))
     metrics.update(metrics_scale)
     metrics["image_width_px"] = int(tensors.width)
     metrics["pruned_primitives"] = metrics["ours_pruned_primitives"]

@@ -78,6 +78,31 @@ def test_direction_image_is_constant_per_primitive_tile(model):
     assert rgb.shape == (1, 64, 4, 4, 4, 3) and bool((rgb >= 0).all())
 
 
+def test_primitive_frame_directions_carry_the_cosine_to_the_normal():
+    """direction_frame='primitive' feeds R_k^T v_k, R_k^T l_k: the same vectors, the normal cosine in channel z."""
+    verts, faces = _sphere()
+    layout = build_layout(verts, faces, SMALL.prims_per_side)
+    torch.manual_seed(0)
+    world = RelightableMVP(SMALL, layout, num_bars=4)
+    torch.manual_seed(0)
+    local = RelightableMVP(SMALL.model_copy(update={"direction_frame": "primitive"}), layout, num_bars=4)
+    mu, _ = world.encode(torch.as_tensor(verts)[None])
+    geo = world.decode_geometry(mu)
+    cam, light = torch.tensor([[0.0, 0.0, 1.0]]), torch.tensor([[0.5, 0.5, 0.5]])
+    img_w, img_l = world.direction_image(geo, cam, light), local.direction_image(geo, cam, light)
+    m = SMALL.voxels_per_side
+    per_prim_w = img_w[0, :, ::m, ::m].reshape(6, -1).T.reshape(-1, 2, 3)  # [P, (view, light), 3]
+    per_prim_l = img_l[0, :, ::m, ::m].reshape(6, -1).T.reshape(-1, 2, 3)
+    rot = geo.rotation[0]  # [P, 3, 3] columns = the primitive's axes
+    torch.testing.assert_close(per_prim_l, torch.einsum("pji,pkj->pki", rot, per_prim_w), atol=1e-6, rtol=0)
+    # The third axis is the guide triangle's normal: the light's z channel is n.l.
+    normal = rot[:, :, 2]  # [P, 3]
+    torch.testing.assert_close(per_prim_l[:, 1, 2], (normal * per_prim_w[:, 1]).sum(-1), atol=1e-6, rtol=0)
+    assert not torch.allclose(img_w, img_l)
+    # Lengths are unchanged (a rotation), so both are unit directions.
+    torch.testing.assert_close(per_prim_l.norm(dim=-1), torch.ones(per_prim_l.shape[:2]), atol=1e-5, rtol=0)
+
+
 def test_light_sum_in_voxel_space_equals_sum_of_renders(model):
     """Opacity does not depend on light: summing RGB voxels of K lights then raymarching once is exact."""
     mu, _ = model.encode(torch.as_tensor(_sphere()[0])[None])

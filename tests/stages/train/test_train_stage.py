@@ -45,6 +45,8 @@ def test_stage_outputs_metrics_table_and_models(capture, tmp_path):
     assert metrics["iterations"] == 8 and metrics["travatar_iterations"] == 6
     table = (out / "table.md").read_text()
     assert "novel light" in table and "TRAvatar*" in table
+    fit_row = next(line for line in table.splitlines() if line.startswith("| training images (fit)"))
+    assert f"{metrics['ours_train_psnr']:.2f}" in fit_row and f"{metrics['travatar_train_psnr']:.2f}" in fit_row
     assert (out / "learning_curve.png").stat().st_size > 0
     curve = json.loads((out / "curve.json").read_text())
     assert [p[0] for p in curve["ours"]] == [0, 6] and [p[0] for p in curve["travatar"]] == [0, 6]
@@ -125,3 +127,23 @@ def test_nan_loss_rolls_back_with_a_warning(capture, tmp_path, monkeypatch, capl
     assert "rolled back to the last good checkpoint" in caplog.text
     state = load_file(str(out / "models" / "ours" / "model.safetensors"))
     assert all(bool(torch.isfinite(v.float()).all()) for v in state.values())
+
+
+def test_fit_frames_optimises_on_the_first_training_frames_only(capture, tmp_path, monkeypatch):
+    """The capacity diagnostic: fit_frames=1 samples one frame, yet the splits and layout use every frame."""
+    seen: set[int] = set()
+    real_sample = trainer_mod.ModelTrainer.sample_batch
+
+    def recording_sample(self):
+        frames, cams, pix = real_sample(self)
+        seen.update(int(f) for f in frames)
+        return frames, cams, pix
+
+    monkeypatch.setattr(trainer_mod.ModelTrainer, "sample_batch", recording_sample)
+    params = {**BASE, "iterations": 6, "baseline": False, "lpips": False, "curve_every": 0, "fit_frames": 1}
+    out = run_stage_for_test(STAGE, tmp_path, capture, params)
+    metrics = json.loads((out / "metrics.json").read_text())
+    splits = json.loads((out / "splits.json").read_text())
+    assert len(seen) == 1  # one frame (data index; splits.json holds capture frame numbers)
+    assert metrics["fitted_frames"] == 1 and metrics["train_frames"] == len(splits["train"]) > 1
+    assert np.isfinite(metrics["ours_train_psnr"]) and np.isfinite(metrics["ours_novel_light_psnr"])
