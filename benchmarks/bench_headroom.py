@@ -5,9 +5,9 @@ train inputs (``HEADROOM_SUBJECT``, default alice; a synthetic capture when it h
 once per variant:
 
 - ``preset``: the tiny preset as it is;
-- ``world_frame``: the preset with view/light directions in head space (the paper's frame)
-  instead of each primitive's axes;
-- ``previous_preset``: the settings the preset had before (world frame, lr 1e-3, batch 4);
+- ``primitive_frame``: the preset with the view/light directions in each primitive's axes
+  (``avatar.direction_frame: primitive``) instead of head space;
+- ``previous_preset``: the training settings the preset had before (lr 1e-3, batch 4);
 - ``one_frame_fit``: the preset optimised on one training frame only (``fit_frames: 1``).
   Its PSNR on that frame's own images is what this capacity reaches in this iteration
   budget with nothing to generalise over: an upper bound for the held-out figures.
@@ -34,8 +34,8 @@ def variants(preset: dict) -> dict[str, dict]:
     avatar = dict(preset.get("avatar") or {})
     return {
         "preset": {},
-        "world_frame": {"avatar": {**avatar, "direction_frame": "world"}},
-        "previous_preset": {"avatar": {**avatar, "direction_frame": "world"}, "lr": 1e-3, "batch_size": 4},
+        "primitive_frame": {"avatar": {**avatar, "direction_frame": "primitive"}},
+        "previous_preset": {"lr": 1e-3, "batch_size": 4},
         "one_frame_fit": {"fit_frames": 1},
     }
 
