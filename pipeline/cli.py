@@ -79,10 +79,12 @@ def build_parser(extra_commands: dict[str, str] | None = None) -> argparse.Argum
     _common(dag, subject=False)
     dag.add_argument("--format", choices=("text", "dot"), default="text")
 
-    gc = sub.add_parser("gc", help="delete objects that no ref and no recent action reaches")
+    gc = sub.add_parser("gc", help="delete objects that no ref and no recent action reaches, and stage-cache "
+                                    "files unused for --keep-days")
     _common(gc)
     gc.add_argument("--keep-days", type=float, default=7.0,
-                    help="keep outputs of actions younger than this many days (default 7)")
+                    help="keep outputs of actions younger than this many days, and cache files used "
+                         "within them (default 7)")
 
     logcmd = sub.add_parser("log", help="print the latest log of a stage")
     _common(logcmd)
@@ -256,7 +258,9 @@ def cmd_gc(args: argparse.Namespace) -> int:
     with ws.lock():
         report = ws.gc(keep_days=args.keep_days)
     print(f"removed {report['objects_removed']} object(s), {report['bytes_freed'] / 1e6:.1f} MB, "
-          f"{report['actions_removed']} old action record(s); kept {report['objects_kept']} object(s)")
+          f"{report['actions_removed']} old action record(s); kept {report['objects_kept']} object(s); "
+          f"cache: removed {report['cache_files_removed']} file(s) unused for {args.keep_days:g} day(s), "
+          f"{report['cache_bytes_freed'] / 1e6:.1f} MB")
     return 0
 
 

@@ -119,6 +119,14 @@ def _decode(value: Any, arrays: Any) -> Any:
     return value
 
 
+def touch_entry(path: Path) -> None:
+    """Mark a cache entry as used now (its mtime): ``pipeline gc`` keeps entries used within its window."""
+    try:
+        os.utime(path)
+    except OSError:  # a read-only cache folder still serves hits
+        pass
+
+
 def write_entry(path: Path, result: Any) -> None:
     """Write a result entry atomically (a killed run never leaves half an entry)."""
     arrays: dict[str, np.ndarray] = {}
@@ -214,6 +222,8 @@ class ItemCache:
                     value = arrived.pop(i)
                 else:
                     found, value = self.load(path)
+                    if found:
+                        touch_entry(path)
                     if not found:
                         log.warning("%s: per-item cache entry %s is unreadable; recomputing it", desc, path)
                         value = self._recompute(executor, fn, items[i], path, desc, gpu)

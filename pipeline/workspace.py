@@ -379,7 +379,8 @@ class Workspace:
     def gc(self, keep_days: float = 7.0) -> dict[str, Any]:
         """Delete objects no ref and no action younger than ``keep_days`` reaches.
 
-        Older action records are deleted too. Call while holding the lock.
+        Older action records are deleted too, and stage-cache files unused for ``keep_days``
+        (``_gc_cache``). Call while holding the lock.
         """
         keep: set[str] = set()
         for ref in self.refs().values():
@@ -405,8 +406,35 @@ class Workspace:
                     removed.append(digest)
                 remove_tree(entry)
         self.clean_tmp()
+        cache_removed, cache_freed = self._gc_cache(cutoff)
         return {"objects_removed": len(removed), "bytes_freed": freed, "actions_removed": dropped_actions,
-                "objects_kept": len([d for d in keep if self.object_path(d).is_dir()])}
+                "objects_kept": len([d for d in keep if self.object_path(d).is_dir()]),
+                "cache_files_removed": cache_removed, "cache_bytes_freed": cache_freed}
+
+    def _gc_cache(self, cutoff: float) -> tuple[int, int]:
+        """Delete stage-cache files neither read nor written since ``cutoff`` (epoch seconds).
+
+        Per-item results are keyed by content and code, so every code change leaves the old
+        entries behind; nothing else ever removes them. A file counts as used by the later of
+        its access and modification times (item-cache hits also refresh the modification time,
+        for file systems mounted without access times). Emptied folders go too; the per-stage
+        folders stay. Returns (files removed, bytes freed).
+        """
+        if not self.cache_dir.is_dir():
+            return 0, 0
+        removed = freed = 0
+        for folder, dirs, files in os.walk(self.cache_dir, topdown=False):
+            for name in files:
+                path = os.path.join(folder, name)
+                st = os.lstat(path)
+                if max(st.st_atime, st.st_mtime) < cutoff:
+                    os.unlink(path)
+                    removed += 1
+                    freed += st.st_size
+            depth = len(Path(folder).relative_to(self.cache_dir).parts)
+            if depth >= 2 and not os.listdir(folder):
+                os.rmdir(folder)
+        return removed, freed
 
 
 def is_read_only(path: Path) -> bool:

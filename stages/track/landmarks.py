@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
+from pipeline.itemcache import touch_entry
 from scene.colour import luminance, srgb_encode
 
 NUM_FACEMESH_LANDMARKS = 468
@@ -205,6 +206,7 @@ def detect_files(job: tuple[list[Path], DetectorParams, Path | None]) -> list[Vi
                 cache_file = Path(cache_dir) / f"{_cache_key(path, params)}.npz"
                 cached = _load_cached(cache_file) if cache_file.is_file() else None
                 if cached is not None:
+                    touch_entry(cache_file)
                     results.append(cached)
                     continue
             try:

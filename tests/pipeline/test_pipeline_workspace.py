@@ -119,3 +119,45 @@ def test_stat_cache_skips_undecodable_names(tmp_path: Path) -> None:
     first = hash_tree(root, stat_cache=cache, allow_symlinks=True)[0]
     cache.flush()
     assert hash_tree(root, stat_cache=StatCache(tmp_path / "cache.sqlite"), allow_symlinks=True)[0] == first
+
+
+def test_gc_drops_cache_files_unused_for_keep_days(tmp_path: Path) -> None:
+    ws = Workspace(tmp_path / "ws", "alice")
+    ws.ensure()
+    stale = ws.cache_dir / "capture" / "items" / "mod.fn" / "ab" / "abc.npz"
+    fresh = ws.cache_dir / "capture" / "items" / "mod.fn" / "cd" / "cde.npz"
+    ckpt = ws.cache_dir / "train" / "key1" / "ours.pt"
+    for path in (stale, fresh, ckpt):
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_bytes(b"x" * 1000)
+    ten_days_ago = time.time() - 10 * 86400
+    os.utime(stale, (ten_days_ago, ten_days_ago))
+    os.utime(ckpt, (ten_days_ago, ten_days_ago))
+    two_days_ago = time.time() - 2 * 86400
+    os.utime(fresh, (two_days_ago, two_days_ago))
+    with ws.lock():
+        report = ws.gc(keep_days=7)
+    assert report["cache_files_removed"] == 2 and report["cache_bytes_freed"] == 2000
+    assert fresh.is_file() and not stale.exists() and not ckpt.exists()
+    assert not stale.parent.exists() and not ckpt.parent.exists()  # emptied folders go
+    assert (ws.cache_dir / "train").is_dir() and (ws.cache_dir / "capture").is_dir()  # per-stage folders stay
+
+
+def test_item_cache_hit_marks_the_entry_used(tmp_path: Path) -> None:
+    from pipeline.executors import LocalExecutor
+    from pipeline.itemcache import ItemCache
+
+    ws = Workspace(tmp_path / "ws", "alice")
+    ws.ensure()
+    cache = ItemCache(ws.cache_dir / "s" / "items")
+    with LocalExecutor(workers=1) as pool:
+        assert cache.map(pool, abs, [-3], str) == [3]
+        (entry,) = list((ws.cache_dir / "s" / "items").rglob("*.npz"))
+        ten_days_ago = time.time() - 10 * 86400
+        os.utime(entry, (ten_days_ago, ten_days_ago))
+        assert cache.map(pool, abs, [-3], str) == [3] and cache.hits == 1
+    # The modification time, not only the access time (a noatime mount never updates that).
+    assert entry.stat().st_mtime > time.time() - 60
+    with ws.lock():
+        assert ws.gc(keep_days=7)["cache_files_removed"] == 0
+    assert entry.is_file()
