@@ -24,7 +24,8 @@ def inputs(tmp_path_factory):
 def test_stage_writes_every_sequence_and_metrics(inputs, tmp_path):
     out = run_stage_for_test(STAGE, tmp_path, inputs, FAST)
     metrics = json.loads((out / "metrics.json").read_text())
-    for key in ("envmap_seconds_per_frame", "naive_envmap_seconds_per_frame", "envmap_directions"):
+    for key in ("envmap_seconds_per_frame", "naive_envmap_seconds_per_frame", "envmap_directions",
+                "envmap_worker_seconds_per_frame"):
         assert metrics[key] > 0
     assert metrics["envmap_fast_naive_max_abs_diff"] < 1e-4
     manifest = json.loads((out / "renders.json").read_text())
@@ -35,6 +36,14 @@ def test_stage_writes_every_sequence_and_metrics(inputs, tmp_path):
         assert (out / name / f"{name}.mp4").stat().st_size > 0
     # The map turns: consecutive frames differ by the requested rotation.
     assert [f["rotation_deg"] for f in manifest["envmap_studio"]] == [0.0, 30.0]
+
+
+def test_without_timing_frames_the_workers_timing_is_reported(inputs, tmp_path):
+    params = {**FAST, "envmap_frames": 1, "orbit_frames": 0, "turntable_frames": 0, "dolly_zoom_frames": 0,
+              "naive_timing_frames": 0}
+    metrics = json.loads((run_stage_for_test(STAGE, tmp_path, inputs, params) / "metrics.json").read_text())
+    assert "naive_envmap_seconds_per_frame" not in metrics
+    assert metrics["envmap_seconds_per_frame"] == metrics["envmap_worker_seconds_per_frame"] > 0
 
 
 def test_orbit_warns_about_lights_behind_the_head(inputs, tmp_path, caplog):
