@@ -24,68 +24,13 @@ from __future__ import annotations
 import json
 import math
 import os
-import subprocess
-import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-INPUT_STAGES = ("capture", "stabilize", "track", "matte", "lightcal")
-
-
-def _tiny_train_params() -> dict:
-    """The tiny preset's train section (the settings every size trains with)."""
-    from pipeline.yamlio import read_yaml_mapping
-
-    preset = read_yaml_mapping(ROOT / "configs" / "presets" / "tiny.yaml", "configs/presets/tiny.yaml")
-    return dict(preset.get("train") or {})
-
-
-def _inputs(subject: str, scratch: Path) -> tuple[dict[str, str], str]:
-    """Train-stage input folders: the subject's workspace if it has them, else a synthetic capture."""
-    from pipeline.errors import PipelineError
-    from pipeline.workspace import Workspace, workspace_root
-
-    try:
-        ws = Workspace(workspace_root(ROOT), subject)
-        return {k: str(ws.output_path(k)) for k in INPUT_STAGES}, f"workspace {subject}"
-    except (PipelineError, OSError) as err:
-        print(f"capacity: no train inputs for subject '{subject}' ({err}); using a synthetic capture", flush=True)
-    sys.path.insert(0, str(ROOT / "tests" / "stages" / "train"))
-    from train_synth import make_capture
-
-    folders = make_capture(scratch / "synth", width_px=64, cameras=6, frames_per_take=(60, 24))
-    return {k: str(v) for k, v in folders.items()}, "synthetic capture (tests/stages/train/train_synth.py)"
-
-
-def _train_one(spec: dict) -> dict:
-    """Child process: run the train stage once; returns its metrics and capacity.json."""
-    import torch
-
-    torch.set_num_threads(1)
-    from pipeline.testing import run_stage_for_test
-    from stages.train.stage import STAGE
-
-    workdir = Path(spec["workdir"])
-    out = run_stage_for_test(STAGE, workdir, {k: Path(v) for k, v in spec["inputs"].items()}, spec["params"])
-    return {"metrics": json.loads((out / "metrics.json").read_text()),
-            "capacity": json.loads((out / "capacity.json").read_text())}
-
-
-def _run_child(spec: dict, scratch: Path, name: str) -> dict:
-    spec_path = scratch / f"{name}.json"
-    result_path = scratch / f"{name}.result.json"
-    spec = {**spec, "workdir": str(scratch / name), "result": str(result_path)}
-    spec_path.write_text(json.dumps(spec))
-    env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    proc = subprocess.run([sys.executable, "-m", "benchmarks.bench_capacity", "--one", str(spec_path)],
-                          cwd=ROOT, env=env, capture_output=True, text=True)
-    if proc.returncode != 0:
-        raise RuntimeError(f"capacity size {name} failed:\n{proc.stderr[-3000:]}")
-    return json.loads(result_path.read_text())
+from benchmarks.train_runs import ROOT, run_train, tiny_train_params, train_inputs
 
 
 def _point(name: str, result: dict, texels: int, chosen: bool) -> dict:
@@ -112,15 +57,15 @@ def main() -> dict:
     from avatar.config import AvatarConfig
 
     subject = os.environ.get("CAPACITY_SUBJECT", "alice")
-    iterations = int(os.environ.get("CAPACITY_ITERATIONS", "0")) or int(_tiny_train_params()["iterations"])
+    iterations = int(os.environ.get("CAPACITY_ITERATIONS", "0")) or int(tiny_train_params()["iterations"])
     scales = [float(s) for s in os.environ.get("CAPACITY_SCALES", "0.25,0.5,1,2,4").split(",")]
     start = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="bench_capacity_") as tmp:
         scratch = Path(tmp)
-        inputs, source = _inputs(subject, scratch)
-        base = {**_tiny_train_params(), "iterations": iterations, "baseline": False, "lpips": False,
+        inputs, source = train_inputs(subject, scratch)
+        base = {**tiny_train_params(), "iterations": iterations, "baseline": False, "lpips": False,
                 "curve_every": 0, "previews": 0, "threads": 1, "checkpoint_every": 10 ** 6}
-        auto = _run_child({"inputs": inputs, "params": {**base, "capacity": "auto"}}, scratch, "auto")
+        auto = run_train(inputs, {**base, "capacity": "auto"}, scratch, "auto")
         cap = auto["capacity"]
         rule = CapacityRule(**cap["rule"])
         used = AvatarConfig(**cap["used"])
@@ -136,7 +81,7 @@ def main() -> dict:
                 continue
             config = config_for(texels, width, rule, used)
             params = {**base, "capacity": "fixed", "avatar": config.model_dump(mode="json")}
-            result = _run_child({"inputs": inputs, "params": params}, scratch, f"t{texels}")
+            result = run_train(inputs, params, scratch, f"t{texels}")
             points.append(_point(f"x{scale:g}", result, texels, False))
             p = points[-1]
             print(f"N={p['prims_per_side']} M={p['voxels_per_side']} (N*M={texels}): {p['heldout_psnr']:.2f} dB, "
@@ -185,8 +130,4 @@ def main() -> dict:
 
 
 if __name__ == "__main__":
-    if len(sys.argv) == 3 and sys.argv[1] == "--one":
-        spec = json.loads(Path(sys.argv[2]).read_text())
-        Path(spec["result"]).write_text(json.dumps(_train_one(spec)))
-    else:
-        main()
+    main()

@@ -25,7 +25,7 @@ import os
 import tempfile
 from pathlib import Path
 
-from benchmarks.bench_capacity import ROOT, _inputs, _run_child, _tiny_train_params
+from benchmarks.train_runs import ROOT, run_train, tiny_train_params, train_inputs
 
 SPLITS = ("novel_light", "novel_perf", "novel_both")
 
@@ -43,18 +43,18 @@ def variants(preset: dict) -> dict[str, dict]:
 
 def main() -> dict:
     subject = os.environ.get("HEADROOM_SUBJECT", "alice")
-    preset = _tiny_train_params()
+    preset = tiny_train_params()
     iterations = int(os.environ.get("HEADROOM_ITERATIONS", "0")) or int(preset["iterations"])
     base = {**preset, "iterations": iterations, "baseline": False, "lpips": False, "curve_every": 0, "previews": 0}
     results: dict = {"iterations": iterations, "variants": {}}
     with tempfile.TemporaryDirectory(prefix="bench-headroom-") as tmp:
         scratch = Path(tmp)
-        inputs, source = _inputs(subject, scratch)
+        inputs, source = train_inputs(subject, scratch)
         results["source"] = source
         print(f"headroom: {source}, {iterations} iterations per variant", flush=True)
         print(f"{'variant':<16} {'light':>6} {'perf':>6} {'both':>6} {'fit':>6} {'it/s':>6}", flush=True)
         for name, update in variants(preset).items():
-            m = _run_child({"inputs": inputs, "params": {**base, **update}}, scratch, name)["metrics"]
+            m = run_train(inputs, {**base, **update}, scratch, name)["metrics"]
             row = {s: m.get(f"ours_{s}_psnr") for s in SPLITS}
             row.update(train_psnr=m["ours_train_psnr"], fitted_frames=m["fitted_frames"],
                        iterations_per_second=m["iterations_per_second"], params=update)

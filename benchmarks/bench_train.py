@@ -104,9 +104,9 @@ def main() -> dict:
         torch.set_num_threads(1)
     results: dict = {"device": torch.cuda.get_device_name() if cuda else "cpu",
                      "threads": torch.get_num_threads()}
-    from benchmarks.bench_capacity import _tiny_train_params
+    from benchmarks.train_runs import tiny_train_params
 
-    preset = _tiny_train_params()
+    preset = tiny_train_params()
     batch, rays = int(preset["batch_size"]), int(preset["rays_per_image"])
     tiny = _measure(AvatarConfig.tiny(), 64, batch=batch, rays=rays, iterations=10, device=device)
     results["tiny"] = tiny

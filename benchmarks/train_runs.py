@@ -1,0 +1,89 @@
+"""Train-stage runs for the training benchmarks: the tiny preset's settings, the inputs, one run per process.
+
+``bench_capacity`` and ``bench_headroom`` train the head many times with different settings;
+each run goes to its own child process (``python -m benchmarks.train_runs SPEC.json``), so
+peak memory (RSS on a CPU) is that run's own and one run's threads or caches never slow the
+next.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+#: Stages whose outputs the train stage reads.
+INPUT_STAGES = ("capture", "stabilize", "track", "matte", "lightcal")
+
+
+def tiny_train_params() -> dict:
+    """The tiny preset's train section (the settings every benchmark run starts from)."""
+    from pipeline.yamlio import read_yaml_mapping
+
+    preset = read_yaml_mapping(ROOT / "configs" / "presets" / "tiny.yaml", "configs/presets/tiny.yaml")
+    return dict(preset.get("train") or {})
+
+
+def train_inputs(subject: str, scratch: Path) -> tuple[dict[str, str], str]:
+    """Train-stage input folders and where they came from.
+
+    The subject's workspace when it has them (run ``make subject S=<subject>`` first), else a
+    small synthetic capture rendered like the train tests' (``tests/stages/train/train_synth.py``)
+    under ``scratch``.
+    """
+    from pipeline.errors import PipelineError
+    from pipeline.workspace import Workspace, workspace_root
+
+    try:
+        ws = Workspace(workspace_root(ROOT), subject)
+        return {k: str(ws.output_path(k)) for k in INPUT_STAGES}, f"workspace {subject}"
+    except (PipelineError, OSError) as err:
+        print(f"no train inputs for subject '{subject}' ({err}); using a synthetic capture", flush=True)
+    sys.path.insert(0, str(ROOT / "tests" / "stages" / "train"))
+    from train_synth import make_capture
+
+    folders = make_capture(scratch / "synth", width_px=64, cameras=6, frames_per_take=(60, 24))
+    return {k: str(v) for k, v in folders.items()}, "synthetic capture (tests/stages/train/train_synth.py)"
+
+
+def _train_once(spec: dict) -> dict:
+    """In the child: run the train stage once; its metrics and capacity.json."""
+    import torch
+
+    torch.set_num_threads(1)
+    from pipeline.testing import run_stage_for_test
+    from stages.train.stage import STAGE
+
+    workdir = Path(spec["workdir"])
+    out = run_stage_for_test(STAGE, workdir, {k: Path(v) for k, v in spec["inputs"].items()}, spec["params"])
+    return {"metrics": json.loads((out / "metrics.json").read_text()),
+            "capacity": json.loads((out / "capacity.json").read_text())}
+
+
+def run_train(inputs: dict[str, str], params: dict, scratch: Path, name: str) -> dict:
+    """Run the train stage with ``params`` on ``inputs`` in a child process, working in ``scratch/name``.
+
+    Returns ``{"metrics": metrics.json, "capacity": capacity.json}`` of the run; raises
+    ``RuntimeError`` with the end of the child's stderr when it fails.
+    """
+    spec_path = scratch / f"{name}.json"
+    result_path = scratch / f"{name}.result.json"
+    spec = {"inputs": inputs, "params": params, "workdir": str(scratch / name), "result": str(result_path)}
+    spec_path.write_text(json.dumps(spec))
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    proc = subprocess.run([sys.executable, "-m", "benchmarks.train_runs", str(spec_path)],
+                          cwd=ROOT, env=env, capture_output=True, text=True)
+    if proc.returncode != 0:
+        raise RuntimeError(f"train run '{name}' failed:\n{proc.stderr[-3000:]}")
+    return json.loads(result_path.read_text())
+
+
+if __name__ == "__main__":
+    if len(sys.argv) != 2:
+        sys.exit("usage: python -m benchmarks.train_runs SPEC.json (written by run_train)")
+    child_spec = json.loads(Path(sys.argv[1]).read_text())
+    Path(child_spec["result"]).write_text(json.dumps(_train_once(child_spec)))
