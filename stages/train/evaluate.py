@@ -78,4 +78,11 @@ def results_table(metrics: dict[str, float], models: list[str]) -> str:
             v = metrics.get(f"{m}_train_psnr")
             cells += ["n/a" if v is None else f"{v:.2f}"] + ["-"] * (len(cols) - 1)
         lines.append("| training images (fit) | " + " | ".join(cells) + " |")
+    spacing = metrics.get("train_expression_spacing_mm")
+    distances = [(title, metrics.get(f"{split}_expression_distance_mm")) for split, title in SPLIT_TITLES.items()]
+    if spacing is not None and all(d is not None for _, d in distances):
+        # How far each split extrapolates in expression: a model that generalises poorly loses most where this is high.
+        parts = ", ".join(f"{title} {d:.2f} mm ({d / max(spacing, 1e-12):.1f}x)" for title, d in distances)
+        lines.append(f"\nHeld-out guide meshes to the nearest training mesh (mean vertex distance): {parts}; "
+                     f"training meshes are {spacing:.2f} mm from each other.")
     return "\n".join(lines) + "\n"

@@ -78,3 +78,26 @@ def make_splits(take: np.ndarray, bar: np.ndarray, bar_dirs: dict[int, np.ndarra
     light = np.isin(bar, held_bars)
     return Splits(train=~perf & ~light, novel_light=~perf & light, novel_perf=perf & ~light,
                   novel_both=perf & light, held_out_bars=tuple(int(b) for b in held_bars), held_out_take=name)
+
+
+def nearest_training_distance_mm(vertices: np.ndarray, train: np.ndarray, query: np.ndarray,
+                                 chunk: int = 64) -> np.ndarray:
+    """Per query frame, the mean vertex distance (mm) to its nearest training frame's mesh.
+
+    ``vertices`` [F, V, 3] head-space meshes (metres); ``train``, ``query`` [F] masks. A
+    frame in both masks is not its own neighbour, so a training frame gets the distance to
+    its nearest *other* training frame: the spacing of the training expressions, against
+    which a held-out split's distance says how far it extrapolates (a held-out expression
+    several times further from the training set than training frames are from each other is
+    out of distribution). Chunked over query frames: memory [chunk, F_train, V].
+    """
+    train_idx, query_idx = np.flatnonzero(train), np.flatnonzero(query)
+    ref = np.asarray(vertices[train_idx], np.float32)  # [T, V, 3]
+    out = np.full(len(query_idx), np.nan)
+    for start in range(0, len(query_idx), chunk):
+        rows = query_idx[start:start + chunk]
+        q = np.asarray(vertices[rows], np.float32)  # [Q, V, 3]
+        dist = np.linalg.norm(q[:, None] - ref[None], axis=-1).mean(-1) * 1000.0  # [Q, T]
+        dist[rows[:, None] == train_idx[None]] = np.inf  # not its own neighbour
+        out[start:start + len(rows)] = dist.min(1)
+    return out

@@ -42,7 +42,7 @@ from pipeline.errors import ConfigError, InputError
 from pipeline.stage import Stage, StageContext, StageParams
 from stages.train.data import TrainData, load_train_data
 from stages.train.evaluate import SCALED_SPLITS, curve_png, eval_pairs, image_metrics, results_table
-from stages.train.splits import SPLITS, Splits, make_splits
+from stages.train.splits import SPLITS, Splits, make_splits, nearest_training_distance_mm
 from stages.train.trainer import LossWeights, ModelTrainer, PruneSchedule, Renderer, TrainTensors
 
 
@@ -309,6 +309,7 @@ def train(ctx: StageContext, rank: int = 0, world_size: int = 1, device: torch.d
     metrics["train_frames"] = int(len(train_frames))
     metrics["fitted_frames"] = int(len(fitted_frames))
     metrics.update(metrics_scale)
+    metrics.update(expression_spread_metrics(data.vertices[:, layout.guide_vertex_ids], splits))
     metrics["image_width_px"] = int(tensors.width)
     metrics["pruned_primitives"] = metrics["ours_pruned_primitives"]
     metrics.update(capacity.as_metrics() if params.capacity == "auto" else _fixed_capacity_metrics(capacity, avatar))
@@ -467,6 +468,22 @@ def _scales(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     from avatar.metrics import exposure_scale
 
     return exposure_scale(pred, target)[:, None, None, None]
+
+
+def expression_spread_metrics(guide_vertices: np.ndarray, splits: Splits) -> dict[str, float]:
+    """How far each split's guide meshes are from the nearest training frame's (mean, mm).
+
+    ``train_expression_spacing_mm`` is the training frames' distance to their nearest other
+    training frame; ``{split}_expression_distance_mm`` over it is how far the split
+    extrapolates in expression (1 = as close as training frames are to each other).
+    """
+    out = {"train_expression_spacing_mm": float(np.mean(nearest_training_distance_mm(
+        guide_vertices, splits.train, splits.train)))} if splits.train.sum() > 1 else {}
+    for split in SPLITS:
+        if splits.mask(split).any():
+            out[f"{split}_expression_distance_mm"] = float(np.mean(nearest_training_distance_mm(
+                guide_vertices, splits.train, splits.mask(split))))
+    return out
 
 
 def _write_splits(path: Path, data: TrainData, splits: Splits) -> None:

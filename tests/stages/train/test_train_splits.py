@@ -6,7 +6,7 @@ import numpy as np
 from scipy.spatial import ConvexHull
 
 from avatar.travatar import direction_uv
-from stages.train.splits import interior_bars, make_splits
+from stages.train.splits import interior_bars, make_splits, nearest_training_distance_mm
 
 
 def _bar_dirs() -> dict[int, np.ndarray]:
@@ -37,3 +37,17 @@ def test_held_out_segment_of_the_last_take():
     masks = np.stack([s.train, s.novel_light, s.novel_perf, s.novel_both])
     assert np.all(masks.sum(0) == 1)
     assert not np.isin(bar[s.train], s.held_out_bars).any()
+
+
+def test_nearest_training_distance_is_to_the_closest_other_training_mesh():
+    rng = np.random.default_rng(0)
+    base = rng.normal(size=(50, 3)) * 0.05  # [V, 3] metres
+    shift_mm = np.array([0.0, 1.0, 3.0, 10.0, 2.5])  # each frame's mesh moved along x by this
+    vertices = base[None] + np.stack([[s / 1000.0, 0.0, 0.0] for s in shift_mm])[:, None]
+    train = np.array([True, True, True, False, False])
+    query = np.array([False, False, False, True, True])
+    # Held out: 10 mm -> nearest training 3 mm (7 mm away); 2.5 mm -> 3 mm (0.5 mm away).
+    np.testing.assert_allclose(nearest_training_distance_mm(vertices, train, query), [7.0, 0.5], atol=1e-4)
+    # Training frames never count themselves: 0 -> 1, 1 -> 0, 3 -> 1 mm. Chunking changes nothing.
+    np.testing.assert_allclose(nearest_training_distance_mm(vertices, train, train, chunk=2), [1.0, 1.0, 2.0],
+                               atol=1e-4)

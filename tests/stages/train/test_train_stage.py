@@ -47,6 +47,10 @@ def test_stage_outputs_metrics_table_and_models(capture, tmp_path):
     assert "novel light" in table and "TRAvatar*" in table
     fit_row = next(line for line in table.splitlines() if line.startswith("| training images (fit)"))
     assert f"{metrics['ours_train_psnr']:.2f}" in fit_row and f"{metrics['travatar_train_psnr']:.2f}" in fit_row
+    # Expression distances: held-out frames of another take lie further from training than its own spacing.
+    assert metrics["train_expression_spacing_mm"] > 0
+    assert metrics["novel_perf_expression_distance_mm"] > metrics["train_expression_spacing_mm"]
+    assert f"novel performance {metrics['novel_perf_expression_distance_mm']:.2f} mm" in table
     assert (out / "learning_curve.png").stat().st_size > 0
     curve = json.loads((out / "curve.json").read_text())
     assert [p[0] for p in curve["ours"]] == [0, 6] and [p[0] for p in curve["travatar"]] == [0, 6]
