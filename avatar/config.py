@@ -35,8 +35,12 @@ class AvatarConfig(BaseModel):
                     "'world' (head space, as the paper) or 'primitive' (each primitive's own rotated axes, so the "
                     "cosine to the surface normal is one input channel everywhere on the UV layout). Both models' "
                     "view directions follow it. The same vectors either way. Measured on the tiny preset "
-                    "(benchmarks/bench_headroom.py): 'primitive' gains about 1 dB on every split for alice but "
-                    "loses 1.4 dB (novel performance) and 2.3 dB (both) for bob, so 'world' is the default.")
+                    "(benchmarks/bench_headroom.py): 'primitive' gains about 1 dB on every split for alice, within "
+                    "the ~1 dB that the seed alone moves a split (benchmarks/bench_seeds.py), but loses 1.4 dB "
+                    "(novel performance) and 2.3 dB (both) for bob, whose held-out expressions lie 3-4x further "
+                    "from the training ones than alice's, so 'world' is the default. Only the light in the "
+                    "primitive's axes, or axes that follow the triangle's normal without spinning about it, "
+                    "collapse bob's novel performance the same way (22.6 dB against 24.0).")
     light_basis: int = Field(0, description="TRAvatar*: number of training lights in the fixed one-hot light basis (0 = ours).")
 
     @model_validator(mode="after")
