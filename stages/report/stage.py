@@ -25,6 +25,7 @@ from pydantic import Field
 
 from pipeline.stage import Stage, StageContext, StageParams
 from stages.report.capacity import BENCH_PNG as CAPACITY_PNG, capacity_section
+from stages.report.seeds import seeds_section
 from stages.report.charts import stage_timings_chart, target_ratio_chart, tradeoff_chart
 from stages.report.html import Section, Table, render_document
 from stages.report.targets import TARGETS
@@ -203,6 +204,10 @@ def run(ctx: StageContext) -> None:
     targets_section, verdicts = _targets_section(merged, charts)
     sections.append(targets_section)
     sections.append(_paper_table_section(merged["train"]))
+    bench = bench_results_folder(params)
+    spread = seeds_section(bench[0], ctx.subject) if bench else None
+    if spread is not None:
+        sections.append(spread)
 
     tradeoffs = _tradeoff_charts(ctx, charts)
     if tradeoffs:
@@ -211,7 +216,6 @@ def run(ctx: StageContext) -> None:
             speed.figure(chart, title)
         sections.append(speed)
 
-    bench = bench_results_folder(params)
     if bench:
         capacity = capacity_section(bench[0], charts)
         if capacity is not None:

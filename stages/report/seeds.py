@@ -1,0 +1,41 @@
+"""The report's seed-spread section: ours against TRAvatar* over several seeds (``benchmarks/bench_seeds.py``).
+
+One training run is one draw; this section shows, for the report's subject, each model's
+mean and spread over seeds and whether the paired difference is resolved at 95%.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from stages.report.html import Section, Table
+
+SPLIT_LABELS = {"novel_light": "novel light", "novel_perf": "novel performance", "novel_both": "both",
+                "train": "training images (fit)"}
+
+
+def seeds_section(bench_folder: Path, subject: str) -> Section | None:
+    """The section, or None when ``seeds_<subject>.json`` is missing or unreadable."""
+    path = Path(bench_folder) / f"seeds_{subject}.json"
+    if not path.is_file():
+        return None
+    try:
+        result = json.loads(path.read_text(encoding="utf-8"))
+        summary = {split: result["summary"][split] for split in SPLIT_LABELS if split in result["summary"]}
+        seeds = list(result["seeds"])
+    except (ValueError, KeyError, TypeError):
+        return None
+    section = Section("Ours vs TRAvatar* over seeds (PSNR, dB)", "seeds")
+    section.paragraph(f"{len(seeds)} seeds ({', '.join(map(str, seeds))}), {result.get('iterations')} iterations per "
+                      f"model, {result.get('source')}. A split is called for a model only when the 95% interval of "
+                      "the paired difference (same seed, same data) excludes 0.")
+    table = Table(["split", "ours mean ± std", "TRAvatar* mean ± std", "ours - TRAvatar*", "95% interval", "verdict"],
+                  table_id="seeds-table")
+    for split, row in summary.items():
+        lo, hi = row["diff_ci95"]
+        table.add([SPLIT_LABELS[split], f"{row['ours_mean']:.2f} ± {row['ours_std']:.2f}",
+                   f"{row['travatar_mean']:.2f} ± {row['travatar_std']:.2f}", f"{row['diff_mean']:+.2f}",
+                   f"[{lo:+.2f}, {hi:+.2f}]", str(row["verdict"])])
+    section.table(table)
+    return section

@@ -1,0 +1,19 @@
+"""The seed bench's statistics: paired differences and their 95% interval decide a split only when it excludes 0."""
+
+from __future__ import annotations
+
+import pytest
+
+from benchmarks.bench_seeds import paired_summary
+
+
+def test_a_consistent_lead_is_called_and_a_tie_is_not():
+    lead = paired_summary([24.0, 25.0, 24.5], [23.0, 24.0, 23.4])  # differences 1.0, 1.0, 1.1
+    assert lead["diff_mean"] == pytest.approx(31 / 30)
+    # t(0.975, 2) = 4.3027; sample std of the differences 0.057735; n = 3.
+    half = 4.302653 * 0.0577350 / 3 ** 0.5
+    assert lead["diff_ci95"] == pytest.approx([31 / 30 - half, 31 / 30 + half], abs=1e-5)
+    assert lead["verdict"] == "ours ahead" and lead["ours_std"] == pytest.approx(0.5)
+    # The same means apart, but the seeds disagree on the sign: not resolved.
+    assert paired_summary([24.0, 25.0, 24.5], [24.2, 24.6, 24.7])["verdict"] == "not resolved"
+    assert paired_summary([23.0, 23.1, 23.3], [24.0, 24.3, 24.2])["verdict"] == "TRAvatar* ahead"
