@@ -17,3 +17,17 @@ def test_a_consistent_lead_is_called_and_a_tie_is_not():
     # The same means apart, but the seeds disagree on the sign: not resolved.
     assert paired_summary([24.0, 25.0, 24.5], [24.2, 24.6, 24.7])["verdict"] == "not resolved"
     assert paired_summary([23.0, 23.1, 23.3], [24.0, 24.3, 24.2])["verdict"] == "TRAvatar* ahead"
+
+
+def test_earlier_runs_are_reused_only_with_the_same_settings_and_data(tmp_path):
+    import json
+
+    from benchmarks.bench_seeds import _earlier_runs
+
+    path = tmp_path / "seeds_alice.json"
+    assert _earlier_runs(path, {"lr": 0.003}, "workspace alice") == {}  # no file yet
+    path.write_text(json.dumps({"params": {"lr": 0.003}, "source": "workspace alice",
+                                "runs": {"0": {"ours_train": 27.0}, "2": {"ours_train": 26.0}}}))
+    assert _earlier_runs(path, {"lr": 0.003}, "workspace alice") == {0: {"ours_train": 27.0}, 2: {"ours_train": 26.0}}
+    assert _earlier_runs(path, {"lr": 0.001}, "workspace alice") == {}  # other settings: train again
+    assert _earlier_runs(path, {"lr": 0.003}, "synthetic capture") == {}  # other data: train again
