@@ -34,13 +34,11 @@ class AvatarConfig(BaseModel):
         description="Axes in which the per-primitive view and light directions are fed to the appearance branch: "
                     "'world' (head space, as the paper) or 'primitive' (each primitive's own rotated axes, so the "
                     "cosine to the surface normal is one input channel everywhere on the UV layout). Both models' "
-                    "view directions follow it. The same vectors either way. Measured on the tiny preset "
-                    "(benchmarks/bench_headroom.py): 'primitive' gains about 1 dB on every split for alice, within "
-                    "the ~1 dB that the seed alone moves a split (benchmarks/bench_seeds.py), but loses 1.4 dB "
-                    "(novel performance) and 2.3 dB (both) for bob, whose held-out expressions lie 3-4x further "
-                    "from the training ones than alice's, so 'world' is the default. Only the light in the "
-                    "primitive's axes, or axes that follow the triangle's normal without spinning about it, "
-                    "collapse bob's novel performance the same way (22.6 dB against 24.0).")
+                    "view directions follow it. The same vectors either way. Measured on the tiny preset with one "
+                    "seed (benchmarks/bench_headroom.py): 'primitive' gained about 1 dB on every split for alice "
+                    "and lost 1.4 / 2.3 dB on bob's novel performance / both; but the seed alone moves 'world' "
+                    "by 1 dB on alice and by 2.2 dB on bob's novel performance (benchmarks/bench_seeds.py), so "
+                    "neither is resolved, and 'world', the paper's, stays the default.")
     light_basis: int = Field(0, description="TRAvatar*: number of training lights in the fixed one-hot light basis (0 = ours).")
 
     @model_validator(mode="after")
