@@ -12,6 +12,10 @@ once per variant:
   Its PSNR on that frame's own images is what this capacity reaches in this iteration
   budget with nothing to generalise over: an upper bound for the held-out figures.
 
+Each variant is one run with the preset's seed: on tiny the seed alone moves our held-out
+PSNR by about 1 dB on alice and more on bob (``bench_seeds``), so a difference below that is
+not resolved here; compare a promising variant over seeds before changing a default.
+
 Prints held-out PSNR per split, the fit on training images and the training speed, and
 writes ``bench-results/headroom.json``. ``HEADROOM_ITERATIONS`` overrides the preset's
 iteration count. About 4 minutes a variant on a 2-core CPU at the preset's 2500 iterations
