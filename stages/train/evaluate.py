@@ -83,6 +83,6 @@ def results_table(metrics: dict[str, float], models: list[str]) -> str:
     if spacing is not None and all(d is not None for _, d in distances):
         # How far each split extrapolates in expression: a model that generalises poorly loses most where this is high.
         parts = ", ".join(f"{title} {d:.2f} mm ({d / max(spacing, 1e-12):.1f}x)" for title, d in distances)
-        lines.append(f"\nHeld-out guide meshes to the nearest training mesh (mean vertex distance): {parts}; "
+        lines.append(f"\nHeld-out guide meshes to the nearest training mesh (RMS vertex distance): {parts}; "
                      f"training meshes are {spacing:.2f} mm from each other.")
     return "\n".join(lines) + "\n"

@@ -81,23 +81,31 @@ def make_splits(take: np.ndarray, bar: np.ndarray, bar_dirs: dict[int, np.ndarra
 
 
 def nearest_training_distance_mm(vertices: np.ndarray, train: np.ndarray, query: np.ndarray,
-                                 chunk: int = 64) -> np.ndarray:
-    """Per query frame, the mean vertex distance (mm) to its nearest training frame's mesh.
+                                 chunk: int = 256) -> np.ndarray:
+    """Per query frame, the RMS vertex distance (mm) to its nearest training frame's mesh.
 
     ``vertices`` [F, V, 3] head-space meshes (metres); ``train``, ``query`` [F] masks. A
     frame in both masks is not its own neighbour, so a training frame gets the distance to
     its nearest *other* training frame: the spacing of the training expressions, against
     which a held-out split's distance says how far it extrapolates (a held-out expression
     several times further from the training set than training frames are from each other is
-    out of distribution). Chunked over query frames: memory [chunk, F_train, V].
+    out of distribution).
+
+    RMS over vertices is the Euclidean distance of the flattened meshes over sqrt(V), so all
+    pairs come from one matrix product (|q|^2 + |t|^2 - 2 q.t) in float64 on offsets from the
+    training mean: memory [chunk, F_train], not [chunk, F_train, V], for thousands of frames.
     """
     train_idx, query_idx = np.flatnonzero(train), np.flatnonzero(query)
-    ref = np.asarray(vertices[train_idx], np.float32)  # [T, V, 3]
+    num_vertices = vertices.shape[1]
+    mean = np.asarray(vertices[train_idx], np.float64).mean(0)
+    ref = (np.asarray(vertices[train_idx], np.float64) - mean).reshape(len(train_idx), -1)  # [T, 3V]
+    ref_sq = (ref * ref).sum(-1)  # [T]
     out = np.full(len(query_idx), np.nan)
     for start in range(0, len(query_idx), chunk):
         rows = query_idx[start:start + chunk]
-        q = np.asarray(vertices[rows], np.float32)  # [Q, V, 3]
-        dist = np.linalg.norm(q[:, None] - ref[None], axis=-1).mean(-1) * 1000.0  # [Q, T]
+        q = (np.asarray(vertices[rows], np.float64) - mean).reshape(len(rows), -1)  # [Q, 3V]
+        sq = (q * q).sum(-1)[:, None] + ref_sq[None] - 2.0 * q @ ref.T  # [Q, T]
+        dist = np.sqrt(np.maximum(sq, 0.0) / num_vertices) * 1000.0
         dist[rows[:, None] == train_idx[None]] = np.inf  # not its own neighbour
         out[start:start + len(rows)] = dist.min(1)
     return out

@@ -471,7 +471,7 @@ def _scales(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
 
 
 def expression_spread_metrics(guide_vertices: np.ndarray, splits: Splits) -> dict[str, float]:
-    """How far each split's guide meshes are from the nearest training frame's (mean, mm).
+    """How far each split's guide meshes are from the nearest training frame's (RMS vertex distance, mean over frames, mm).
 
     ``train_expression_spacing_mm`` is the training frames' distance to their nearest other
     training frame; ``{split}_expression_distance_mm`` over it is how far the split

@@ -48,6 +48,11 @@ def test_nearest_training_distance_is_to_the_closest_other_training_mesh():
     query = np.array([False, False, False, True, True])
     # Held out: 10 mm -> nearest training 3 mm (7 mm away); 2.5 mm -> 3 mm (0.5 mm away).
     np.testing.assert_allclose(nearest_training_distance_mm(vertices, train, query), [7.0, 0.5], atol=1e-4)
+    # RMS over vertices: half the vertices moved by 2 mm, half not at all is sqrt(2) mm (the mean would say 1).
+    pair = np.stack([base, base])
+    pair[1, :25, 0] += 0.002
+    np.testing.assert_allclose(nearest_training_distance_mm(pair, np.array([True, False]), np.array([False, True])),
+                               [np.sqrt(2.0)], atol=1e-4)
     # Training frames never count themselves: 0 -> 1, 1 -> 0, 3 -> 1 mm. Chunking changes nothing.
     np.testing.assert_allclose(nearest_training_distance_mm(vertices, train, train, chunk=2), [1.0, 1.0, 2.0],
                                atol=1e-4)
