@@ -10,8 +10,9 @@ paired difference ours - TRAvatar* (same seed, same data) with its 95% confidenc
 Knobs: ``SEEDS_SUBJECT`` (default alice; a synthetic capture when the subject has no train
 inputs), ``SEEDS`` (default ``0,1,2``), ``SEEDS_ITERATIONS`` (default: the preset's). Writes
 ``bench-results/seeds_<subject>.json``; a later run with the same settings reuses the seeds
-that file already holds and trains only the new ones. PSNR only (no LPIPS). About 8 minutes a seed on a
-2-core CPU at the preset's 2500 iterations (both models).
+that file already holds and trains only the new ones. PSNR only (no LPIPS). About 10 minutes
+a seed on a 2-core CPU at the preset's 2500 iterations (both models; measured with another
+subject's seeds running beside it).
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """Train-stage runs for the training benchmarks: the tiny preset's settings, the inputs, one run per process.
 
-``bench_capacity`` and ``bench_headroom`` train the head many times with different settings;
+``bench_capacity``, ``bench_headroom`` and ``bench_seeds`` train the head many times with different settings;
 each run goes to its own child process (``python -m benchmarks.train_runs SPEC.json``), so
 peak memory (RSS on a CPU) is that run's own and one run's threads or caches never slow the
 next.

@@ -224,7 +224,7 @@ class ItemCache:
                     found, value = self.load(path)
                     if found:
                         touch_entry(path)
-                    if not found:
+                    else:
                         log.warning("%s: per-item cache entry %s is unreadable; recomputing it", desc, path)
                         value = self._recompute(executor, fn, items[i], path, desc, gpu)
                         recomputed.append(i)
