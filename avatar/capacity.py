@@ -17,6 +17,15 @@ steps for about one sample per texel across the head, and lets the decoder width
 the number of training frames (cube root, within bounds): more frames, more appearance
 variation to hold, more channels; few frames, a narrow decoder that cannot memorise them.
 
+The latent code z follows what the training meshes span: ``count_expression_modes`` counts
+the principal components of the (head-space) training meshes that hold 99.9% of their
+variance about the mean, and the rule gives z two dimensions per mode, up to a power of two
+within [8, 256]. A code much wider than the meshes' own dimensions lets the encoder give each
+training frame a private direction that the decoder ties to that frame's image; a novel
+expression then lands off the training codes. On the tiny captures 45 training frames span 6
+modes, so z = 16 (64 before this rule); ``benchmarks/bench_seeds.py`` over seeds measures
+the change (README, "Presets and what they cost").
+
 The default ``min_texel_px = 2`` comes from the measured curve, not from first principles:
 ``benchmarks/bench_capacity.py`` (held-out PSNR against N*M, tiny preset, alice, the same
 training for every size) puts the knee at N*M = 32 (texels of 3 px) after 300, 1000 and
@@ -70,6 +79,14 @@ class CapacityRule(BaseModel):
     max_width: int = Field(256, ge=8, description="Largest decoder width (channels; the paper's 256).")
     min_steps: int = Field(16, ge=2, description="Fewest raymarch steps per ray.")
     max_steps: int = Field(128, ge=2, description="Most raymarch steps per ray (the paper's 128).")
+    expression_variance: float = Field(
+        0.999, gt=0, lt=1, description="Fraction of the training meshes' variance about their mean that the "
+        "counted expression modes hold (see count_expression_modes).")
+    latent_per_mode: float = Field(
+        2.0, ge=0, description="Latent size per expression mode, rounded up to a power of two within "
+        "[min_latent, max_latent]; 0 = keep the latent size of the train stage's avatar section.")
+    min_latent: int = Field(8, ge=1, description="Smallest latent size.")
+    max_latent: int = Field(256, ge=1, description="Largest latent size (the paper's 256).")
 
     @model_validator(mode="after")
     def _check(self) -> "CapacityRule":
@@ -78,7 +95,7 @@ class CapacityRule(BaseModel):
             if value & (value - 1):
                 raise ValueError(f"{key}={value}: must be a power of two")
         for lo, hi in (("min_prims_per_side", "max_prims_per_side"), ("min_voxels_per_side", "max_voxels_per_side"),
-                       ("min_width", "max_width"), ("min_steps", "max_steps")):
+                       ("min_width", "max_width"), ("min_steps", "max_steps"), ("min_latent", "max_latent")):
             if getattr(self, lo) > getattr(self, hi):
                 raise ValueError(f"{lo}={getattr(self, lo)} > {hi}={getattr(self, hi)}")
         return self
@@ -92,12 +109,16 @@ class CaptureStats:
         image_width_px, image_height_px: training image size.
         footprint_px: the head's width in the images, pixels (median over training images).
         frames: number of training frames (each with every camera).
+        expression_modes: principal components of the training meshes that hold
+            ``CapacityRule.expression_variance`` of their variance (``count_expression_modes``);
+            0 = not measured (the latent size is left as given).
     """
 
     image_width_px: int
     image_height_px: int
     footprint_px: float
     frames: int
+    expression_modes: int = 0
 
 
 @dataclass(frozen=True)
@@ -111,6 +132,7 @@ class Capacity:
     voxel_px: float  # projected voxel edge of the choice, pixels (prim_overlap * texel_px)
     layout_span_px: float  # pixels the layout's row spans (theta * footprint)
     width: int  # decoder width
+    latent_dim: int = 0  # size of the mesh encoder's code z
 
     def as_metrics(self) -> dict[str, float]:
         """Flat metrics (``capacity_*``): the choice and the rule's inputs."""
@@ -119,6 +141,7 @@ class Capacity:
             "capacity_primitives": c.num_prims, "capacity_prims_per_side": c.prims_per_side,
             "capacity_voxel_res": c.voxels_per_side, "capacity_texels_per_side": self.texels_per_side,
             "capacity_width": self.width, "capacity_steps_per_ray": c.steps_per_ray,
+            "capacity_latent_dim": c.latent_dim, "capacity_expression_modes": self.stats.expression_modes,
             "capacity_texel_px": self.texel_px, "capacity_voxel_px": self.voxel_px,
             "capacity_layout_span_px": self.layout_span_px,
             "capacity_image_width_px": self.stats.image_width_px,
@@ -129,6 +152,10 @@ class Capacity:
 
 def _pow2_floor(x: float) -> int:
     return 1 << max(0, int(math.floor(math.log2(max(x, 1.0)) + 1e-9)))
+
+
+def _pow2_ceil(x: float) -> int:
+    return 1 << max(0, int(math.ceil(math.log2(max(x, 1.0)) - 1e-9)))
 
 
 def _pow2_round(x: float) -> int:
@@ -150,6 +177,10 @@ def _check_stats(stats: CaptureStats) -> None:
             raise CapacityInputError(f"capacity rule: {key}={value!r} must be a positive finite number; check the "
                               "training images and mattes (an empty matte gives a zero footprint) or use "
                               "train.capacity: fixed")
+    modes = stats.expression_modes
+    if isinstance(modes, bool) or not isinstance(modes, (int, np.integer)) or modes < 0:
+        raise CapacityInputError(f"capacity rule: expression_modes={modes!r} must be an integer >= 0 (0 = not "
+                                 "measured); count it with count_expression_modes on the training meshes")
     if stats.footprint_px > 2.0 * math.hypot(stats.image_width_px, stats.image_height_px):
         raise CapacityInputError(f"capacity rule: footprint_px={stats.footprint_px:.1f} is more than twice the image "
                           f"diagonal ({stats.image_width_px}x{stats.image_height_px} px); the footprint must be "
@@ -190,6 +221,40 @@ def decoder_width(frames: int, rule: CapacityRule) -> int:
     return min(max(_round8(raw), rule.min_width), rule.max_width)
 
 
+def latent_size(expression_modes: int, rule: CapacityRule) -> int:
+    """Latent size for ``expression_modes`` modes: ``latent_per_mode`` each, up to a power of two, bounded."""
+    return min(max(_pow2_ceil(rule.latent_per_mode * expression_modes), rule.min_latent), rule.max_latent)
+
+
+def count_expression_modes(vertices: np.ndarray, variance: float, max_frames: int = 512,
+                           max_points: int = 2048) -> int:
+    """Principal components of the meshes ``vertices`` [F, V, 3] that hold ``variance`` of their spread.
+
+    The spread is about the mean mesh, so with head-space (stabilised) meshes it is the
+    expression's. Evenly spread subsets of at most ``max_frames`` frames and ``max_points``
+    vertices keep the cost bounded at the paper's thousands of frames and tens of thousands
+    of vertices (expression modes are smooth over the face, so a vertex subset spans them);
+    the eigenvalues come from the [F, F] Gram matrix in float64. 0 for fewer than 2 frames or
+    meshes that never move.
+    """
+    v = np.asarray(vertices)
+    if v.ndim != 3 or v.shape[-1] != 3:
+        raise ValueError(f"count_expression_modes: vertices must be [F, V, 3], got {v.shape}")
+    if v.shape[0] < 2:
+        return 0
+    frames = np.unique(np.linspace(0, v.shape[0] - 1, min(max_frames, v.shape[0])).round().astype(int))
+    points = np.unique(np.linspace(0, v.shape[1] - 1, min(max_points, v.shape[1])).round().astype(int))
+    x = v[frames][:, points].reshape(len(frames), -1).astype(np.float64)
+    if not np.any(x != x[0]):
+        return 0  # exactly still (the mean's rounding would otherwise leave a spurious mode)
+    x -= x.mean(0)
+    eig = np.clip(np.linalg.eigvalsh(x @ x.T)[::-1], 0.0, None)  # descending
+    total = eig.sum()
+    if not np.isfinite(total) or total <= 0:
+        return 0
+    return int(np.searchsorted(np.cumsum(eig) / total, variance - 1e-12) + 1)
+
+
 def texel_px(texels_per_side: int, footprint_px: float, base: AvatarConfig) -> float:
     """UV texel pitch on the head (image pixels) of N*M = ``texels_per_side`` on a head ``footprint_px`` wide."""
     return math.radians(base.layout_theta_deg) * footprint_px / texels_per_side
@@ -204,8 +269,9 @@ def choose_capacity(stats: CaptureStats, rule: CapacityRule | None = None,
                     base: AvatarConfig | None = None) -> Capacity:
     """The capacity the capture ``stats`` need (see the module docstring); CapacityInputError on nonsense input.
 
-    ``base`` supplies what the rule does not choose (latent size, encoder, layout); the rule
-    sets N, M, the channel widths and the raymarch steps.
+    ``base`` supplies what the rule does not choose (encoder width, layout; the latent size
+    when ``stats.expression_modes`` is 0 or ``rule.latent_per_mode`` is 0); the rule sets N, M,
+    the channel widths, the raymarch steps and the latent size.
     """
     rule = rule or CapacityRule()
     base = base or AvatarConfig.tiny()
@@ -220,12 +286,14 @@ def choose_capacity(stats: CaptureStats, rule: CapacityRule | None = None,
     n, m = split_texels(texels, rule)
     texels = n * m
     width = decoder_width(stats.frames, rule)
-    config = config_for(texels, width, rule, base)
+    modes = int(stats.expression_modes)
+    latent = latent_size(modes, rule) if modes > 0 and rule.latent_per_mode > 0 else base.latent_dim
+    config = config_for(texels, width, rule, base.model_copy(update={"latent_dim": latent}))
     return Capacity(config=config, stats=CaptureStats(stats.image_width_px, stats.image_height_px, footprint,
-                                                      int(stats.frames)),
+                                                      int(stats.frames), modes),
                     texels_per_side=texels, texel_px=texel_px(texels, footprint, base),
                     voxel_px=voxel_px(texels, footprint, base), layout_span_px=span,
-                    width=width)
+                    width=width, latent_dim=latent)
 
 
 def footprint_from_mattes(mattes: np.ndarray, threshold: float = 0.5) -> float:
@@ -272,4 +340,4 @@ def find_knee(x: np.ndarray, y: np.ndarray) -> int | None:
 
 
 __all__ = ["CapacityInputError", "CapacityRule", "CaptureStats", "Capacity", "choose_capacity", "config_for",
-           "decoder_width", "split_texels", "texel_px", "voxel_px", "footprint_from_mattes", "find_knee"]
+           "count_expression_modes", "decoder_width", "latent_size", "split_texels", "texel_px", "voxel_px", "footprint_from_mattes", "find_knee"]

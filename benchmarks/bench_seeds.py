@@ -8,9 +8,13 @@ paired difference ours - TRAvatar* (same seed, same data) with its 95% confidenc
 (Student's t over the seeds). A split is called for a model only when the interval excludes 0.
 
 Knobs: ``SEEDS_SUBJECT`` (default alice; a synthetic capture when the subject has no train
-inputs), ``SEEDS`` (default ``0,1,2``), ``SEEDS_ITERATIONS`` (default: the preset's). Writes
-``bench-results/seeds_<subject>.json``; a later run with the same settings reuses the seeds
-that file already holds and trains only the new ones. PSNR only (no LPIPS). About 10 minutes
+inputs), ``SEEDS`` (default ``0,1,2``), ``SEEDS_ITERATIONS`` (default: the preset's),
+``SEEDS_SET`` (a JSON object of train params laid over the preset's, nested sections merged
+key by key, e.g. ``'{"capacity_rule": {"latent_per_mode": 0}}'`` to train both models at the
+avatar section's latent size instead of the rule's) and ``SEEDS_TAG`` (a name for that
+variant). Writes ``bench-results/seeds_<subject>.json`` (``seeds_<subject>_<tag>.json`` with a
+tag); a later run with the same settings reuses the seeds that file already holds and trains
+only the new ones. PSNR only (no LPIPS). About 10 minutes
 a seed on a 2-core CPU at the preset's 2500 iterations (both models; measured with another
 subject's seeds running beside it).
 """
@@ -45,15 +49,39 @@ def paired_summary(ours: list[float], baseline: list[float]) -> dict:
             "travatar_std": std(b), "diff_mean": float(diff.mean()), "diff_ci95": [lo, hi], "verdict": verdict}
 
 
+def merge_params(base: dict, overrides: dict) -> dict:
+    """``base`` with ``overrides`` laid over it; a nested section (a dict in both) is merged key by key."""
+    out = dict(base)
+    for key, value in overrides.items():
+        out[key] = merge_params(out[key], value) if isinstance(value, dict) and isinstance(out.get(key), dict) \
+            else value
+    return out
+
+
+def _overrides() -> dict:
+    text = os.environ.get("SEEDS_SET", "").strip()
+    try:
+        value = json.loads(text) if text else {}
+    except ValueError as err:
+        raise SystemExit(f"SEEDS_SET={text!r} is not JSON ({err}); give an object of train params, "
+                         "e.g. '{\"capacity_rule\": {\"latent_per_mode\": 0}}'") from err
+    if not isinstance(value, dict):
+        raise SystemExit(f"SEEDS_SET={text!r} must be a JSON object of train params")
+    return value
+
+
 def main() -> dict:
     subject = os.environ.get("SEEDS_SUBJECT", "alice")
     seeds = [int(s) for s in os.environ.get("SEEDS", "0,1,2").split(",")]
+    tag = os.environ.get("SEEDS_TAG", "").strip()
+    if tag and not tag.replace("-", "").replace("_", "").isalnum():
+        raise SystemExit(f"SEEDS_TAG={tag!r}: use letters, digits, '-' and '_' (it names the results file)")
     preset = tiny_train_params()
     iterations = int(os.environ.get("SEEDS_ITERATIONS", "0")) or int(preset["iterations"])
-    base = {**preset, "iterations": iterations, "baseline": True, "baseline_iterations": 0, "lpips": False,
-            "curve_every": 0, "previews": 0}
+    base = merge_params({**preset, "iterations": iterations, "baseline": True, "baseline_iterations": 0,
+                         "lpips": False, "curve_every": 0, "previews": 0}, _overrides())
     out = ROOT / "bench-results"
-    path = out / f"seeds_{subject}.json"
+    path = out / (f"seeds_{subject}_{tag}.json" if tag else f"seeds_{subject}.json")
     with tempfile.TemporaryDirectory(prefix="bench-seeds-") as tmp:
         scratch = Path(tmp)
         inputs, source = train_inputs(subject, scratch)

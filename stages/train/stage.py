@@ -9,7 +9,7 @@ Output:
     splits.json                      held-out bars / take and the frames of every split
     learning_curve.png, curve.json   held-out (novel light) PSNR against training time
     tradeoffs/learning_curve.json    the same as a report trade-off series, the chosen configuration marked
-    capacity.json                    the capacity rule's inputs (image size, head footprint, frames) and choice
+    capacity.json                    the capacity rule's inputs (image size, head footprint, frames, expression modes) and choice
     table.md                         the paper's table (rows: splits; PSNR, MAE, SSIM, LPIPS per model)
     previews/<split>_<k>.png         ground truth | ours | TRAvatar*, sRGB
     tensorboard/                     loss terms and held-out PSNR
@@ -32,7 +32,7 @@ import torch
 from pydantic import Field
 
 from avatar.capacity import Capacity, CapacityInputError, CapacityRule, CaptureStats, choose_capacity, \
-    footprint_from_mattes
+    count_expression_modes, footprint_from_mattes
 from avatar.config import AvatarConfig
 from avatar.layout import build_layout
 from avatar.io import save_trained
@@ -51,11 +51,12 @@ class TrainParams(StageParams):
 
     avatar: AvatarConfig = Field(default_factory=AvatarConfig.tiny,
                                  description="Model sizes (N, M, latent, channels, raymarch steps); see avatar.config. "
-                                 "With capacity 'auto' the rule replaces N, M, the channel widths and the steps.")
+                                 "With capacity 'auto' the rule replaces N, M, the channel widths, the steps and the "
+                                 "latent size.")
     capacity: Literal["auto", "fixed"] = Field(
-        "fixed", description="'auto': primitives, voxels per primitive, channel widths and raymarch steps chosen "
-        "from the capture (training image size, the head's footprint in the mattes, training frames) by "
-        "avatar.capacity; 'fixed': the avatar section as given.")
+        "fixed", description="'auto': primitives, voxels per primitive, channel widths, raymarch steps and latent "
+        "size chosen from the capture (training image size, the head's footprint in the mattes, training frames, "
+        "expression modes of the training meshes) by avatar.capacity; 'fixed': the avatar section as given.")
     capacity_rule: CapacityRule = Field(default_factory=CapacityRule,
                                         description="Constants of the capacity rule (capacity 'auto').")
     prune_at_fraction: float = Field(0.5, ge=0, le=1, description="Prune empty primitives after this fraction "
@@ -209,10 +210,12 @@ def train(ctx: StageContext, rank: int = 0, world_size: int = 1, device: torch.d
     ctx.log.info("splits: %s", {k: int(splits.mask(k).sum()) for k in ("train",) + SPLITS})
     capacity = capacity_of(data, train_frames, params)
     avatar = capacity.config if params.capacity == "auto" else params.avatar
-    ctx.log.info("capacity (%s): %d primitives (N=%d) of %d^3 voxels, width %d, %d steps; rule inputs: %dx%d px, "
-                 "head %.1f px wide, %d training frames", params.capacity, avatar.num_prims, avatar.prims_per_side,
-                 avatar.voxels_per_side, avatar.base_channels, avatar.steps_per_ray, capacity.stats.image_width_px,
-                 capacity.stats.image_height_px, capacity.stats.footprint_px, capacity.stats.frames)
+    ctx.log.info("capacity (%s): %d primitives (N=%d) of %d^3 voxels, width %d, %d steps, latent %d; rule inputs: "
+                 "%dx%d px, head %.1f px wide, %d training frames, %d expression modes", params.capacity,
+                 avatar.num_prims, avatar.prims_per_side, avatar.voxels_per_side, avatar.base_channels,
+                 avatar.steps_per_ray, avatar.latent_dim, capacity.stats.image_width_px,
+                 capacity.stats.image_height_px, capacity.stats.footprint_px, capacity.stats.frames,
+                 capacity.stats.expression_modes)
     if lead:
         _write_capacity(ctx.out / "capacity.json", params, capacity, avatar)
     mean_mesh = data.vertices[train_frames].mean(0)
@@ -338,9 +341,10 @@ def _drop_spill(ctx: StageContext, rank: int, data: TrainData) -> None:
 def capacity_of(data: TrainData, train_frames: np.ndarray, params: TrainParams) -> Capacity:
     """The capacity rule applied to the training data (training resolution, training frames' mattes)."""
     _, _, height, width = data.mattes.shape
+    modes = count_expression_modes(data.vertices[train_frames], params.capacity_rule.expression_variance)
     stats = CaptureStats(image_width_px=int(width), image_height_px=int(height),
                          footprint_px=footprint_from_mattes(data.mattes[_statistics_frames(train_frames)]),
-                         frames=int(len(train_frames)))
+                         frames=int(len(train_frames)), expression_modes=modes)
     try:
         return choose_capacity(stats, params.capacity_rule, params.avatar)
     except CapacityInputError as err:
@@ -349,7 +353,7 @@ def capacity_of(data: TrainData, train_frames: np.ndarray, params: TrainParams) 
             avatar = params.avatar
             return Capacity(config=avatar, stats=stats, texels_per_side=avatar.prims_per_side * avatar.voxels_per_side,
                             texel_px=float("nan"), voxel_px=float("nan"), layout_span_px=float("nan"),
-                            width=avatar.base_channels)
+                            width=avatar.base_channels, latent_dim=avatar.latent_dim)
         raise ConfigError(f"train.capacity=auto: {err}") from err
 
 
@@ -361,6 +365,7 @@ def _fixed_capacity_metrics(capacity: Capacity, avatar: AvatarConfig) -> dict[st
     out = {"capacity_primitives": avatar.num_prims, "capacity_prims_per_side": avatar.prims_per_side,
            "capacity_voxel_res": avatar.voxels_per_side, "capacity_texels_per_side": texels,
            "capacity_width": avatar.base_channels, "capacity_steps_per_ray": avatar.steps_per_ray,
+           "capacity_latent_dim": avatar.latent_dim, "capacity_expression_modes": capacity.stats.expression_modes,
            "capacity_image_width_px": capacity.stats.image_width_px,
            "capacity_image_height_px": capacity.stats.image_height_px,
            "capacity_footprint_px": capacity.stats.footprint_px, "capacity_frames": capacity.stats.frames}
@@ -369,6 +374,7 @@ def _fixed_capacity_metrics(capacity: Capacity, avatar: AvatarConfig) -> dict[st
         out["capacity_voxel_px"] = voxel_px(texels, capacity.stats.footprint_px, avatar)
     if np.isfinite(capacity.texel_px):  # the rule could read the capture: what it would have chosen
         out["capacity_rule_texels_per_side"] = capacity.texels_per_side
+        out["capacity_rule_latent_dim"] = capacity.latent_dim
     return out
 
 
@@ -381,13 +387,15 @@ def _write_capacity(path: Path, params: TrainParams, capacity: Capacity, avatar:
     path.write_text(json.dumps({
         "mode": params.capacity,
         "inputs": {"image_width_px": stats.image_width_px, "image_height_px": stats.image_height_px,
-                   "footprint_px": stats.footprint_px, "frames": stats.frames},
+                   "footprint_px": stats.footprint_px, "frames": stats.frames,
+                   "expression_modes": stats.expression_modes},
         "rule": params.capacity_rule.model_dump(mode="json"),
         "rule_choice": {"primitives": capacity.config.num_prims, "prims_per_side": capacity.config.prims_per_side,
                         "voxels_per_side": capacity.config.voxels_per_side,
                         "texels_per_side": capacity.texels_per_side, "texel_px": finite(capacity.texel_px),
                         "voxel_px": finite(capacity.voxel_px),
-                        "width": capacity.width, "steps_per_ray": capacity.config.steps_per_ray},
+                        "width": capacity.width, "steps_per_ray": capacity.config.steps_per_ray,
+                        "latent_dim": capacity.latent_dim},
         "used": avatar.model_dump(mode="json"),
     }, indent=1))
 

@@ -138,3 +138,60 @@ def test_log2_capacity_curve_knee():
     psnr = np.array([20.0, 23.0, 24.5, 24.8, 24.9])
     assert texels[find_knee(np.log2(texels), psnr)] == 128
     assert math.isclose(np.log2(texels[1]), 6.0)
+
+
+def _meshes(modes: int, frames: int = 60, vertices: int = 500, noise: float = 0.0, seed: int = 0) -> np.ndarray:
+    """Meshes [F, V, 3]: a mean plus ``modes`` independent smooth deformations of equal spread."""
+    rng = np.random.default_rng(seed)
+    mean = rng.normal(size=(vertices, 3))
+    t = np.linspace(0, 1, vertices)[:, None]
+    basis = np.stack([np.sin((k + 1) * np.pi * t + rng.uniform(0, 6, size=(1, 3))) for k in range(modes)])  # [K, V, 3]
+    weights = rng.normal(size=(frames, modes))
+    return mean + np.einsum("fk,kvc->fvc", weights, basis) + noise * rng.normal(size=(frames, vertices, 3))
+
+
+def test_expression_modes_count_the_meshes_own_dimensions():
+    from avatar.capacity import count_expression_modes
+
+    for k in (1, 3, 7, 20):
+        assert count_expression_modes(_meshes(k), 0.999) == k
+    # A mode too weak to matter is not counted; tracking noise adds modes only at a strict threshold.
+    noisy = _meshes(5, noise=1e-2)
+    assert count_expression_modes(noisy, 0.99) == 5
+    assert count_expression_modes(noisy, 0.99999) > 5
+    # Subsampling frames and vertices (the paper's thousands of frames) finds the same count.
+    many = _meshes(6, frames=1500, vertices=5000)
+    assert count_expression_modes(many, 0.999, max_frames=200, max_points=300) == 6
+    assert count_expression_modes(_meshes(4)[:1], 0.999) == 0  # one frame: no spread
+    still = np.repeat(_meshes(1)[:1], 10, 0)
+    assert count_expression_modes(still, 0.999) == 0
+    with pytest.raises(ValueError, match=r"\[F, V, 3\]"):
+        count_expression_modes(np.zeros((4, 10)), 0.999)
+
+
+def test_latent_follows_the_expression_modes_within_bounds():
+    from avatar.capacity import latent_size
+
+    rule = CapacityRule()
+    sizes = [latent_size(k, rule) for k in range(1, 400)]
+    assert all(b >= a for a, b in zip(sizes, sizes[1:]))
+    assert sizes[0] == rule.min_latent and sizes[-1] == rule.max_latent
+    assert all(s & (s - 1) == 0 for s in sizes)
+    assert latent_size(6, rule) == 16 and latent_size(8, rule) == 16 and latent_size(9, rule) == 32
+    base = AvatarConfig.tiny()
+    stats = dict(image_width_px=64, image_height_px=85, footprint_px=52.0, frames=45)
+    assert choose_capacity(CaptureStats(**stats, expression_modes=6)).config.latent_dim == 16
+    chosen = choose_capacity(CaptureStats(**stats, expression_modes=6))
+    assert chosen.latent_dim == 16 and chosen.as_metrics()["capacity_expression_modes"] == 6
+    # Not measured, or the rule told to leave it: the base's latent size.
+    assert choose_capacity(CaptureStats(**stats)).config.latent_dim == base.latent_dim
+    off = CapacityRule(latent_per_mode=0)
+    assert choose_capacity(CaptureStats(**stats, expression_modes=6), off).config.latent_dim == base.latent_dim
+    # The latent changes nothing else the rule chooses.
+    a = choose_capacity(CaptureStats(**stats)).config
+    b = choose_capacity(CaptureStats(**stats, expression_modes=40)).config
+    assert a.model_copy(update={"latent_dim": b.latent_dim}) == b and b.latent_dim == 128
+    with pytest.raises(CapacityInputError, match="expression_modes"):
+        choose_capacity(CaptureStats(**stats, expression_modes=-1))
+    with pytest.raises(ValidationError):
+        CapacityRule(min_latent=64, max_latent=32)

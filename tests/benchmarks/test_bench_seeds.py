@@ -31,3 +31,21 @@ def test_earlier_runs_are_reused_only_with_the_same_settings_and_data(tmp_path):
     assert _earlier_runs(path, {"lr": 0.003}, "workspace alice") == {0: {"ours_train": 27.0}, 2: {"ours_train": 26.0}}
     assert _earlier_runs(path, {"lr": 0.001}, "workspace alice") == {}  # other settings: train again
     assert _earlier_runs(path, {"lr": 0.003}, "synthetic capture") == {}  # other data: train again
+
+
+def test_overrides_merge_into_nested_sections_and_bad_ones_are_named(monkeypatch):
+    from benchmarks.bench_seeds import _overrides, merge_params
+
+    base = {"lr": 0.003, "capacity_rule": {"min_texel_px": 2.0, "latent_per_mode": 2.0}, "avatar": None}
+    merged = merge_params(base, {"capacity_rule": {"latent_per_mode": 0}, "avatar": {"latent_dim": 64}, "seed": 3})
+    assert merged == {"lr": 0.003, "capacity_rule": {"min_texel_px": 2.0, "latent_per_mode": 0},
+                      "avatar": {"latent_dim": 64}, "seed": 3}
+    assert base["capacity_rule"]["latent_per_mode"] == 2.0  # the preset is not changed in place
+    monkeypatch.setenv("SEEDS_SET", '{"lr": 0.001}')
+    assert _overrides() == {"lr": 0.001}
+    monkeypatch.setenv("SEEDS_SET", "{lr: 0.001")
+    with pytest.raises(SystemExit, match="SEEDS_SET.*not JSON"):
+        _overrides()
+    monkeypatch.setenv("SEEDS_SET", "[1, 2]")
+    with pytest.raises(SystemExit, match="JSON object"):
+        _overrides()

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from avatar.capacity import CaptureStats, choose_capacity
+from avatar.capacity import CapacityRule, CaptureStats, choose_capacity, latent_size
 from avatar.config import AvatarConfig
 from pipeline.errors import ConfigError
 from pipeline.testing import run_stage_for_test
@@ -34,16 +34,21 @@ def capture(tmp_path_factory) -> dict[str, Path]:
 
 
 def test_auto_capacity_is_the_rules_choice_and_is_reported(capture, tmp_path):
-    out = run_stage_for_test(STAGE, tmp_path, capture, {**BASE, "capacity": "auto", "iterations": 8,
-                                                          "rays_per_image": 32})
+    # The avatar section's latent size (32) is the rule's to replace, from the meshes' expression modes.
+    base_avatar = {**SMALL_AVATAR, "latent_dim": 32}
+    out = run_stage_for_test(STAGE, tmp_path, capture, {**BASE, "avatar": base_avatar, "capacity": "auto",
+                                                          "iterations": 8, "rays_per_image": 32})
     metrics = json.loads((out / "metrics.json").read_text())
     report = json.loads((out / "capacity.json").read_text())
     inputs = report["inputs"]
     assert report["mode"] == "auto" and inputs["image_width_px"] == 24 and inputs["image_height_px"] == 32
     assert 5 < inputs["footprint_px"] <= 24 and inputs["frames"] == metrics["train_frames"]
-    expected = choose_capacity(CaptureStats(**inputs), base=AvatarConfig(**SMALL_AVATAR)).config
+    # The synthetic capture moves the jaw and both smile shapes together: two expression modes.
+    assert inputs["expression_modes"] == 2 == metrics["capacity_expression_modes"]
+    expected = choose_capacity(CaptureStats(**inputs), base=AvatarConfig(**base_avatar)).config
     used = AvatarConfig(**report["used"])
     assert used == expected
+    assert used.latent_dim == latent_size(2, CapacityRule()) == metrics["capacity_latent_dim"]
     from avatar.io import load_trained
 
     model, _ = load_trained(out / "models" / "ours")
