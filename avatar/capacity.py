@@ -136,7 +136,6 @@ class Capacity:
     voxel_px: float  # projected voxel edge of the choice, pixels (prim_overlap * texel_px)
     layout_span_px: float  # pixels the layout's row spans (theta * footprint)
     width: int  # decoder width
-    latent_dim: int = 0  # size of the mesh encoder's code z
 
     def as_metrics(self) -> dict[str, float]:
         """Flat metrics (``capacity_*``): the choice and the rule's inputs."""
@@ -297,7 +296,7 @@ def choose_capacity(stats: CaptureStats, rule: CapacityRule | None = None,
                                                       int(stats.frames), modes),
                     texels_per_side=texels, texel_px=texel_px(texels, footprint, base),
                     voxel_px=voxel_px(texels, footprint, base), layout_span_px=span,
-                    width=width, latent_dim=latent)
+                    width=width)
 
 
 def footprint_from_mattes(mattes: np.ndarray, threshold: float = 0.5) -> float:
@@ -344,4 +343,5 @@ def find_knee(x: np.ndarray, y: np.ndarray) -> int | None:
 
 
 __all__ = ["CapacityInputError", "CapacityRule", "CaptureStats", "Capacity", "choose_capacity", "config_for",
-           "count_expression_modes", "decoder_width", "latent_size", "split_texels", "texel_px", "voxel_px", "footprint_from_mattes", "find_knee"]
+           "count_expression_modes", "decoder_width", "latent_size", "split_texels", "texel_px", "voxel_px",
+           "footprint_from_mattes", "find_knee"]

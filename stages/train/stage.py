@@ -353,7 +353,7 @@ def capacity_of(data: TrainData, train_frames: np.ndarray, params: TrainParams) 
             avatar = params.avatar
             return Capacity(config=avatar, stats=stats, texels_per_side=avatar.prims_per_side * avatar.voxels_per_side,
                             texel_px=float("nan"), voxel_px=float("nan"), layout_span_px=float("nan"),
-                            width=avatar.base_channels, latent_dim=avatar.latent_dim)
+                            width=avatar.base_channels)
         raise ConfigError(f"train.capacity=auto: {err}") from err
 
 
@@ -374,7 +374,7 @@ def _fixed_capacity_metrics(capacity: Capacity, avatar: AvatarConfig) -> dict[st
         out["capacity_voxel_px"] = voxel_px(texels, capacity.stats.footprint_px, avatar)
     if np.isfinite(capacity.texel_px):  # the rule could read the capture: what it would have chosen
         out["capacity_rule_texels_per_side"] = capacity.texels_per_side
-        out["capacity_rule_latent_dim"] = capacity.latent_dim
+        out["capacity_rule_latent_dim"] = capacity.config.latent_dim
     return out
 
 
@@ -395,7 +395,7 @@ def _write_capacity(path: Path, params: TrainParams, capacity: Capacity, avatar:
                         "texels_per_side": capacity.texels_per_side, "texel_px": finite(capacity.texel_px),
                         "voxel_px": finite(capacity.voxel_px),
                         "width": capacity.width, "steps_per_ray": capacity.config.steps_per_ray,
-                        "latent_dim": capacity.latent_dim},
+                        "latent_dim": capacity.config.latent_dim},
         "used": avatar.model_dump(mode="json"),
     }, indent=1))
 

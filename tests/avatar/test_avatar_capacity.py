@@ -182,7 +182,7 @@ def test_latent_follows_the_expression_modes_within_bounds():
     stats = dict(image_width_px=64, image_height_px=85, footprint_px=52.0, frames=45)
     assert choose_capacity(CaptureStats(**stats, expression_modes=6)).config.latent_dim == 16
     chosen = choose_capacity(CaptureStats(**stats, expression_modes=6))
-    assert chosen.latent_dim == 16 and chosen.as_metrics()["capacity_expression_modes"] == 6
+    assert chosen.as_metrics()["capacity_latent_dim"] == 16 and chosen.as_metrics()["capacity_expression_modes"] == 6
     # Not measured, or the rule told to leave it: the base's latent size.
     assert choose_capacity(CaptureStats(**stats)).config.latent_dim == base.latent_dim
     off = CapacityRule(latent_per_mode=0)
