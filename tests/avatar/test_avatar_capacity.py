@@ -9,8 +9,8 @@ import pytest
 from pydantic import ValidationError
 
 from avatar.capacity import (CapacityInputError, CapacityRule, CaptureStats, choose_capacity, config_for,
-                             decoder_width, find_knee, footprint_from_mattes, split_texels, texel_px,
-                             voxel_px)
+                             count_expression_modes, decoder_width, find_knee, footprint_from_mattes, latent_size,
+                             split_texels, texel_px, voxel_px)
 from avatar.config import AvatarConfig
 
 
@@ -151,8 +151,6 @@ def _meshes(modes: int, frames: int = 60, vertices: int = 500, noise: float = 0.
 
 
 def test_expression_modes_count_the_meshes_own_dimensions():
-    from avatar.capacity import count_expression_modes
-
     for k in (1, 3, 7, 20):
         assert count_expression_modes(_meshes(k), 0.999) == k
     # A mode too weak to matter is not counted; tracking noise adds modes only at a strict threshold.
@@ -170,8 +168,6 @@ def test_expression_modes_count_the_meshes_own_dimensions():
 
 
 def test_latent_follows_the_expression_modes_within_bounds():
-    from avatar.capacity import latent_size
-
     rule = CapacityRule()
     sizes = [latent_size(k, rule) for k in range(1, 400)]
     assert all(b >= a for a, b in zip(sizes, sizes[1:]))
@@ -180,8 +176,8 @@ def test_latent_follows_the_expression_modes_within_bounds():
     assert latent_size(6, rule) == 16 and latent_size(8, rule) == 16 and latent_size(9, rule) == 32
     base = AvatarConfig.tiny()
     stats = dict(image_width_px=64, image_height_px=85, footprint_px=52.0, frames=45)
-    assert choose_capacity(CaptureStats(**stats, expression_modes=6)).config.latent_dim == 16
     chosen = choose_capacity(CaptureStats(**stats, expression_modes=6))
+    assert chosen.config.latent_dim == 16
     assert chosen.as_metrics()["capacity_latent_dim"] == 16 and chosen.as_metrics()["capacity_expression_modes"] == 6
     # Not measured, or the rule told to leave it: the base's latent size.
     assert choose_capacity(CaptureStats(**stats)).config.latent_dim == base.latent_dim
