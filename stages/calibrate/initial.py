@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+from contextlib import contextmanager
 from dataclasses import dataclass
+from typing import Iterator
 
 import numpy as np
 
@@ -20,6 +22,27 @@ class Intrinsics:
     cam_from_board: dict[int, Rigid]  # frame -> pose
     rms_px: float
     frame_rms_px: dict[int, float]
+
+
+@contextmanager
+def single_threaded_opencv() -> Iterator[None]:
+    """Run OpenCV on one thread inside the block, restoring its thread count after.
+
+    ``cv2.calibrateCamera`` accumulates its normal equations across threads in whatever order
+    they finish, so on a multi-core machine two calls on the same detections differ in the
+    last bits (1e-11 px). That is harmless as a number but changes the calibration's content
+    digest, so every downstream stage would rerun and training, which amplifies such
+    differences, would give other figures for the same seed. One thread costs nothing here
+    (one camera's calibration takes milliseconds).
+    """
+    import cv2
+
+    previous = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    try:
+        yield
+    finally:
+        cv2.setNumThreads(previous)
 
 
 def calibrate_intrinsics(name: str, detections: list[Detection], corners_board: np.ndarray,
@@ -43,9 +66,10 @@ def calibrate_intrinsics(name: str, detections: list[Detection], corners_board: 
     for _ in range(3):
         obj = [corners_board[d.ids].astype(np.float32).reshape(-1, 1, 3) for d in dets]
         img = [d.corners_px.astype(np.float32).reshape(-1, 1, 2) for d in dets]
-        rms, K, dist, rvecs, tvecs = cv2.calibrateCamera(
-            obj, img, size, np.eye(3), None, flags=flags,
-            criteria=(cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 100, 1e-12))
+        with single_threaded_opencv():  # bit-identical results run to run
+            rms, K, dist, rvecs, tvecs = cv2.calibrateCamera(
+                obj, img, size, np.eye(3), None, flags=flags,
+                criteria=(cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 100, 1e-12))
         dist = np.zeros(5) + np.concatenate([dist.ravel()[:5], np.zeros(5)])[:5]
         frame_rms = {}
         poses = {}

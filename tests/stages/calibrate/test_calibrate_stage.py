@@ -157,6 +157,40 @@ def test_reference_frame_not_seen_fails(calib_capture, tmp_path):
         run_stage_for_test(STAGE, tmp_path / "w", inputs={"capture": capture})
 
 
+def test_intrinsics_are_bit_identical_run_to_run():
+    """Multi-threaded cv2.calibrateCamera differed in the last bits from call to call, which
+    changed the calibration's digest and so every downstream stage's; two threads are asked for
+    so that the check means the same on any machine, and the caller's thread count comes back."""
+    import cv2
+
+    from stages.calibrate.board import Detection
+    from stages.calibrate.initial import calibrate_intrinsics
+
+    rng = np.random.default_rng(0)
+    gx, gy = np.meshgrid(np.arange(9), np.arange(6))
+    corners = np.stack([gx.ravel() * 0.03, gy.ravel() * 0.03, np.zeros(gx.size)], -1)
+    K = np.array([[800.0, 0.0, 320.0], [0.0, 800.0, 240.0], [0.0, 0.0, 1.0]])
+    dist = np.array([0.1, -0.05, 0.001, -0.001, 0.0])
+    detections = []
+    for frame in range(40):
+        rotvec, tvec = rng.normal(0, 0.3, 3), np.array([-0.12, -0.08, 0.5]) + rng.normal(0, 0.03, 3)
+        px, _ = cv2.projectPoints(corners, rotvec, tvec, K, dist)
+        detections.append(Detection(frame=frame, ids=np.arange(len(corners)),
+                                    corners_px=px.reshape(-1, 2) + rng.normal(0, 0.2, (len(corners), 2))))
+    previous = cv2.getNumThreads()
+    cv2.setNumThreads(2)
+    try:
+        runs = [calibrate_intrinsics("cam0", detections, corners, (640, 480), "OPENCV", 1.0, 80.0,
+                                     logging.getLogger("test")) for _ in range(5)]
+        assert cv2.getNumThreads() == 2
+    finally:
+        cv2.setNumThreads(previous)
+    assert np.allclose(runs[0].K, K, atol=2.0)
+    for run in runs[1:]:
+        assert run.K.tobytes() == runs[0].K.tobytes() and run.dist.tobytes() == runs[0].dist.tobytes()
+        assert run.rms_px == runs[0].rms_px
+
+
 def test_umeyama_recovers_a_similarity():
     rng = np.random.default_rng(0)
     src = rng.normal(size=(6, 3))
