@@ -1,7 +1,12 @@
 """Action keys and change explanations, shared by the runner, ``status`` and ``--dry-run``.
 
 A stage's action key is BLAKE3 over the canonical JSON of: its name, its code digest, its
-canonical params, the digests of its input objects and the digests of its external inputs.
+canonical params, the content keys of its input objects and the digests of its external inputs.
+An input's content key is the digest of its data without the runner's ``metrics.json``
+(``Workspace.content_key``), so an upstream rerun that reproduces the same files with other
+timings leaves the stages below it fresh; a stage that reads its inputs' metrics
+(``Stage.reads_metrics``) is keyed on their full digests. Actions recorded before content keys
+existed (keyed on full digests) are still found (``KeyMaterial.legacy_key``).
 """
 
 from __future__ import annotations
@@ -53,30 +58,66 @@ def external_digests(name: str, params: ResolvedParams, ws: Workspace) -> dict[s
 
 @dataclass(frozen=True)
 class KeyMaterial:
-    """Everything an action key is computed from."""
+    """Everything an action key is computed from.
+
+    ``inputs`` are the input objects' digests (where the stage reads them; provenance),
+    ``input_keys`` what the key hashes for them: their content keys, or the same digests for a
+    stage that reads its inputs' metrics.
+    """
 
     stage: str
     code: str
     params: dict[str, Any]
     inputs: dict[str, str]
     external: dict[str, str]
+    input_keys: dict[str, str] | None = None
 
     def to_json(self) -> dict[str, Any]:
         """The JSON form recorded in the action file."""
         return {"stage": self.stage, "code": self.code, "params": self.params,
-                "inputs": self.inputs, "external": self.external}
+                "inputs": self.inputs, "input_keys": self.keyed_inputs, "external": self.external}
+
+    @property
+    def keyed_inputs(self) -> dict[str, str]:
+        """What the key hashes for the inputs."""
+        return self.inputs if self.input_keys is None else self.input_keys
+
+    def _hash(self, inputs: dict[str, str]) -> str:
+        body = {"stage": self.stage, "code": self.code, "params": self.params, "inputs": inputs,
+                "external": self.external}
+        return hash_bytes(json.dumps(body, sort_keys=True, separators=(",", ":")).encode())
 
     @property
     def key(self) -> str:
-        """The action key: BLAKE3 of the canonical JSON."""
-        return hash_bytes(json.dumps(self.to_json(), sort_keys=True, separators=(",", ":")).encode())
+        """The action key: BLAKE3 of the canonical JSON of the stage, code, params, keyed inputs, externals."""
+        return self._hash(self.keyed_inputs)
+
+    @property
+    def legacy_key(self) -> str:
+        """The key of the same action before inputs were keyed by content (their full digests)."""
+        return self._hash(self.inputs)
 
 
 def key_material(project: Project, ws: Workspace, name: str, params: ResolvedParams,
                  input_digests: dict[str, str]) -> KeyMaterial:
     """Compute the key material of stage ``name`` for given input digests."""
+    keys = None if project.stages[name].reads_metrics else {
+        inp: ws.content_key(digest) for inp, digest in input_digests.items()}
     return KeyMaterial(stage=name, code=project.code_digest(name), params=params.canonical,
-                       inputs=dict(input_digests), external=external_digests(name, params, ws))
+                       inputs=dict(input_digests), external=external_digests(name, params, ws), input_keys=keys)
+
+
+def find_action(ws: Workspace, material: KeyMaterial) -> tuple[str, dict] | None:
+    """The recorded action for ``material`` and the key it is stored under, or None.
+
+    Looks under ``material.key``, then under its legacy key (an action recorded before content
+    keys, on identical input objects, is the same work).
+    """
+    for key in dict.fromkeys((material.key, material.legacy_key)):
+        action = ws.read_action(key)
+        if action is not None:
+            return key, action
+    return None
 
 
 def input_digests_from_refs(stage: StageDecl, refs: dict[str, Ref]) -> tuple[dict[str, str], list[str]]:
@@ -122,8 +163,10 @@ def describe_changes(old: dict[str, Any] | None, new: KeyMaterial) -> list[str]:
     params = changed_params(old.get("params", {}), new.params)
     if params:
         reasons.append("params changed: " + "; ".join(params))
-    old_inputs = old.get("inputs", {})
-    changed_inputs = sorted(k for k in set(old_inputs) | set(new.inputs) if old_inputs.get(k) != new.inputs.get(k))
+    # Compare what the keys hashed; a record from before content keys has full digests only.
+    old_inputs, new_inputs = ((old["input_keys"], new.keyed_inputs) if "input_keys" in old
+                              else (old.get("inputs", {}), new.inputs))
+    changed_inputs = sorted(k for k in set(old_inputs) | set(new_inputs) if old_inputs.get(k) != new_inputs.get(k))
     if changed_inputs:
         reasons.append("input changed: " + ", ".join(changed_inputs))
     old_ext = old.get("external", {})

@@ -26,7 +26,7 @@ from typing import Any
 from pipeline.errors import InputError, PipelineError, StageFailed
 from pipeline.executors import check_executor_kind, make_executor
 from pipeline.metrics import clean_metrics
-from pipeline.plan import OUT, input_digests_from_refs, key_material, outputs_problem
+from pipeline.plan import OUT, find_action, input_digests_from_refs, key_material, outputs_problem
 from pipeline.progress import progress_factory
 from pipeline.project import Project
 from pipeline.stage import StageContext
@@ -194,23 +194,31 @@ class Runner:
             raise StageFailed(f"stage '{name}' cannot start: {err}. Fix it, then resume with: "
                               f"{self.resume_command(name)}") from err
         key = material.key
-        if name not in self.forced:
-            action = self.ws.read_action(key)
-            if action is not None:
-                problem = outputs_problem(self.ws, action.get("outputs", {}))
-                if problem is None:
-                    ref = refs.get(name)
-                    if ref is not None and ref.action == key and ref.outputs == action["outputs"]:
-                        log.debug("%s: fresh", name)
-                        return StageOutcome(name, "fresh")
-                    new_ref = Ref(name, key, dict(action["outputs"]), time.strftime("%Y-%m-%dT%H:%M:%S%z"))
-                    self.ws.write_ref(new_ref)
-                    refs[name] = new_ref
-                    log.info("%s: reused the cached result of an earlier run (%s)", name,
-                             action.get("timings", {}).get("started", "?"))
-                    return StageOutcome(name, "reused")
-                log.warning("%s: %s; rebuilding", name, problem)
+        found = None if name in self.forced else find_action(self.ws, material)
+        if found is not None:
+            found_key, action = found
+            problem = outputs_problem(self.ws, action.get("outputs", {}))
+            if problem is None:
+                if found_key != key:
+                    # Recorded before content keys: file it under the current key too.
+                    self.ws.write_action(key, {**action, "key": key, "input_keys": material.keyed_inputs})
+                ref = refs.get(name)
+                if ref is not None and ref.action in (key, found_key) and ref.outputs == action["outputs"]:
+                    if ref.action != key:
+                        refs[name] = self._write_ref(name, key, action["outputs"])
+                    log.debug("%s: fresh", name)
+                    return StageOutcome(name, "fresh")
+                refs[name] = self._write_ref(name, key, action["outputs"])
+                log.info("%s: reused the cached result of an earlier run (%s)", name,
+                         action.get("timings", {}).get("started", "?"))
+                return StageOutcome(name, "reused")
+            log.warning("%s: %s; rebuilding", name, problem)
         return self._execute(name, material, refs)
+
+    def _write_ref(self, name: str, key: str, outputs: dict[str, str]) -> Ref:
+        ref = Ref(name, key, dict(outputs), time.strftime("%Y-%m-%dT%H:%M:%S%z"))
+        self.ws.write_ref(ref)
+        return ref
 
     def _execute(self, name: str, material, refs: dict[str, Ref]) -> StageOutcome:
         key = material.key
@@ -286,9 +294,7 @@ class Runner:
                 "subject": self.ws.subject,
             }
             self.ws.write_action(key, record)
-            new_ref = Ref(name, key, outputs, time.strftime("%Y-%m-%dT%H:%M:%S%z"))
-            self.ws.write_ref(new_ref)
-            refs[name] = new_ref
+            refs[name] = self._write_ref(name, key, outputs)
             stage_log.info("%s done in %.2f s -> %s", name, wall, outputs[OUT][:12])
             return StageOutcome(name, "ran", seconds=wall)
         finally:

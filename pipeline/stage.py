@@ -131,6 +131,9 @@ class Stage:
         external_inputs: maps params to files/folders outside the workspace that the stage reads
             (e.g. an imported capture folder); their content digest counts toward staleness.
         evaluates: for an evaluation stage, the stage whose metrics it completes in ``pipeline show``.
+        reads_metrics: reads its inputs' ``metrics.json`` (e.g. the report). Such a stage is keyed on
+            its inputs' full digests; every other stage only on their data (``Workspace.content_key``),
+            so a rerun upstream that changes nothing but its timings does not make it stale.
     """
 
     name: str
@@ -142,6 +145,7 @@ class Stage:
     reads_truth: bool | None = None
     external_inputs: Callable[[StageParams], Iterable[Path]] | None = None
     evaluates: str | None = None
+    reads_metrics: bool = False
     doc: str = field(default="")
 
     @property

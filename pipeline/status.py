@@ -10,7 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from pipeline.errors import InputError
-from pipeline.plan import describe_changes, input_digests_from_refs, key_material, outputs_problem
+from pipeline.plan import describe_changes, find_action, input_digests_from_refs, key_material, outputs_problem
 from pipeline.project import Project
 from pipeline.project import ResolvedParams
 from pipeline.workspace import Workspace
@@ -69,10 +69,10 @@ def assess(project: Project, ws: Workspace, params: dict[str, ResolvedParams], n
                 material = None
             if material is not None:
                 status.key = material.key
-                action = ws.read_action(material.key)
-                status.cached = bool(action) and outputs_problem(ws, action.get("outputs", {})) is None
+                found = find_action(ws, material)
+                status.cached = found is not None and outputs_problem(ws, found[1].get("outputs", {})) is None
                 if ref is not None:
-                    if ref.action == material.key:
+                    if ref.action in (material.key, material.legacy_key):
                         problem = outputs_problem(ws, ref.outputs, verify=verify)
                         if problem:
                             reasons.append(problem)

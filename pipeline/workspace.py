@@ -38,6 +38,10 @@ from pipeline.hashing import (ManifestEntry, StatCache, hash_tree, manifest_dige
 
 ENV_WORKSPACES = "PIPELINE_WORKSPACES"
 
+#: The file the runner writes into every output beside the stage's own files: the stage's
+#: figures, wall-clock timings included, so it differs between two runs of identical work.
+RUNNER_METRICS_FILE = "metrics.json"
+
 
 def workspace_root(project_root: Path, override: str | Path | None = None) -> Path:
     """Where workspaces live: the override, ``$PIPELINE_WORKSPACES`` or ``<project>/workspaces``."""
@@ -182,6 +186,7 @@ class Workspace:
         self.subject = subject
         self.path = self.root / subject
         self.objects_dir = self.path / "objects"
+        self._content_keys: dict[str, str] = {}
         self.actions_dir = self.path / "actions"
         self.refs_dir = self.path / "refs"
         self.logs_dir = self.path / "logs"
@@ -305,6 +310,28 @@ class Workspace:
     def manifest(self, digest: str) -> list[ManifestEntry]:
         """The stored manifest of an object."""
         return parse_manifest(self._manifest_path(digest).read_text(encoding="utf-8"))
+
+    def content_key(self, digest: str) -> str:
+        """The digest of an object's data: its manifest without the runner's ``metrics.json``.
+
+        Two runs of a stage that produce the same files differ in their timings, hence in
+        ``metrics.json`` and in the object digest; keying downstream actions on this instead
+        lets a rerun whose data come out identical stop there (early cutoff) rather than
+        rebuild everything below it. An object without ``metrics.json`` keys as its own digest,
+        and so does one whose manifest is missing or unreadable (the caller reports it).
+        Objects are immutable, so the keys are kept for the life of this ``Workspace``.
+        """
+        cached = self._content_keys.get(digest)
+        if cached is not None:
+            return cached
+        try:
+            entries = self.manifest(digest)
+        except (OSError, ValueError):
+            return digest
+        data = [e for e in entries if e.relpath != RUNNER_METRICS_FILE]
+        key = digest if len(data) == len(entries) else manifest_digest(data)
+        self._content_keys[digest] = key
+        return key
 
     # -- actions and refs ---------------------------------------------------------------
 

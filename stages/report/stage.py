@@ -262,5 +262,6 @@ STAGE = Stage(
     params=ReportParams,
     run=run,
     external_inputs=bench_results_folder,
+    reads_metrics=True,  # the report shows every stage's figures, timings included
     doc="A self-contained HTML report of every stage's figures against the targets.",
 )

@@ -64,6 +64,50 @@ def test_comment_only_edit_reruns_nothing_code_edit_does(toy: ToyProject) -> Non
     assert toy.cli("run", "-S", "alice").ran == {"total"}
 
 
+def test_rerun_with_identical_data_stops_there_whatever_its_timings(toy: ToyProject) -> None:
+    """A forced source reruns with the same numbers but another ``source_seconds``: its object
+    digest changes, its data do not. Stages keyed on data stay fresh; ``side``, which reads the
+    source's metrics, reruns."""
+    toy.cli("run", "-S", "alice")
+    before = json.loads((toy.ws() / "refs" / "source.json").read_text())["outputs"]["out"]
+    forced = toy.cli("run", "-S", "alice", "--force", "source")
+    after = json.loads((toy.ws() / "refs" / "source.json").read_text())["outputs"]["out"]
+    assert after != before, "the timing should have changed the source object"
+    assert forced.ran == {"source", "side"}
+    assert toy.cli("run", "-S", "alice").ran == set()
+    status = toy.cli("status", "-S", "alice").stdout
+    assert all(" fresh" in line for line in status.splitlines()), status
+    # New data still reach every stage below.
+    assert toy.cli("run", "-S", "alice", "--set", "source.seed=7").ran == ALL
+
+
+def test_actions_recorded_before_content_keys_are_still_found(toy: ToyProject) -> None:
+    """A workspace written when actions were keyed on full input digests stays fresh after the
+    upgrade: nothing reruns, and the refs move to the new keys."""
+    from pipeline.hashing import hash_bytes
+
+    toy.cli("run", "-S", "alice")
+    ws = toy.ws()
+    for stage in ("double", "total", "source_eval"):
+        ref_file = ws / "refs" / f"{stage}.json"
+        ref = json.loads(ref_file.read_text())
+        record = json.loads((ws / "actions" / f"{ref['action']}.json").read_text())
+        body = {k: record[k] for k in ("stage", "code", "params", "inputs", "external")}
+        legacy = hash_bytes(json.dumps(body, sort_keys=True, separators=(",", ":")).encode())
+        assert legacy != ref["action"], f"{stage}: an input with metrics should key differently"
+        (ws / "actions" / f"{ref['action']}.json").unlink()
+        record.pop("input_keys")
+        (ws / "actions" / f"{legacy}.json").write_text(json.dumps({**record, "key": legacy}))
+        ref_file.write_text(json.dumps({**ref, "action": legacy}))
+    status = toy.cli("status", "-S", "alice").stdout
+    assert all(" fresh" in line for line in status.splitlines()), status
+    assert toy.cli("run", "-S", "alice").ran == set()
+    for stage in ("double", "total"):
+        ref = json.loads((ws / "refs" / f"{stage}.json").read_text())
+        assert (ws / "actions" / f"{ref['action']}.json").is_file()
+        assert json.loads((ws / "actions" / f"{ref['action']}.json").read_text())["key"] == ref["action"]
+
+
 def test_selection_options_select_exactly(toy: ToyProject) -> None:
     assert toy.cli("run", "-S", "alice", "--until", "double").ran == {"source", "double"}
     assert toy.cli("run", "-S", "alice", "--from", "double").ran == {"total"}
@@ -201,6 +245,7 @@ def test_imported_folder_stat_cache_and_symlink_escape(toy: ToyProject, tmp_path
 def test_show_log_gc_dag_and_extra_command(toy: ToyProject) -> None:
     toy.cli("run", "-S", "alice")
     merged = json.loads(toy.cli("show", "-S", "alice", "source", "--json").stdout)
+    assert merged.pop("source_seconds") > 0
     assert merged == {"numbers": 4, "rig_bars": 4, "sum_abs_err": 0}
     full = json.loads(toy.cli("show", "-S", "alice", "source", "--json", "--full").stdout)
     assert full["provenance"]["params"]["rig"] == {"name": "toyrig", "bars": 4}

@@ -161,3 +161,23 @@ def test_item_cache_hit_marks_the_entry_used(tmp_path: Path) -> None:
     with ws.lock():
         assert ws.gc(keep_days=7)["cache_files_removed"] == 0
     assert entry.is_file()
+
+
+def test_content_key_leaves_out_the_runner_metrics_only(tmp_path: Path) -> None:
+    ws = Workspace(tmp_path / "ws", "alice")
+    ws.ensure()
+
+    def commit(metrics: str | None, data: str = "y") -> str:
+        folder = ws.new_temp_dir("t")
+        _tree(folder)
+        (folder / "y.txt").write_text(data)
+        if metrics is not None:
+            (folder / "metrics.json").write_text(metrics)
+        return ws.commit(folder)
+
+    plain = commit(None)
+    assert ws.content_key(plain) == plain
+    first, second = commit('{"seconds": 1.0}'), commit('{"seconds": 2.0}')
+    assert first != second and ws.content_key(first) == ws.content_key(second) != first
+    assert ws.content_key(commit('{"seconds": 1.0}', data="z")) != ws.content_key(first)
+    assert ws.content_key("0" * 64) == "0" * 64  # no manifest: the digest itself

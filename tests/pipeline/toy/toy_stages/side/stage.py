@@ -14,7 +14,10 @@ class SideParams(StageParams):
 
 def run(ctx: StageContext) -> None:
     numbers = json.loads((ctx.input("source") / "numbers.json").read_text())
-    (ctx.out / "count.json").write_text(json.dumps({ctx.params.label: len(numbers)}))
+    # Reads the source's figures too (declared below), so it reruns when only they change.
+    source_metrics = json.loads((ctx.input("source") / "metrics.json").read_text())
+    (ctx.out / "count.json").write_text(json.dumps({ctx.params.label: len(numbers),
+                                                    "source_seconds": source_metrics["source_seconds"]}))
 
 # Tests check which stage modules a command imports (the declaration cache spares the rest).
 if os.environ.get("TOY_IMPORT_LOG"):
@@ -22,4 +25,4 @@ if os.environ.get("TOY_IMPORT_LOG"):
         _log.write(__name__ + "\n")
 
 
-STAGE = Stage(name="side", inputs=("source",), params=SideParams, run=run)
+STAGE = Stage(name="side", inputs=("source",), params=SideParams, run=run, reads_metrics=True)

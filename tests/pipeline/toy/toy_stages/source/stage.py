@@ -2,6 +2,7 @@
 
 import json
 import random
+import time
 from pathlib import Path
 
 from pydantic import Field
@@ -27,6 +28,7 @@ def _external(params: SourceParams) -> list[Path]:
 
 def run(ctx: StageContext) -> None:
     params: SourceParams = ctx.params
+    started = time.perf_counter()
     if params.import_dir:
         files = sorted(Path(params.import_dir).rglob("*.txt"))
         numbers = [float(f.read_text().split()[0]) for f in files]
@@ -37,6 +39,8 @@ def run(ctx: StageContext) -> None:
     (ctx.extra_outputs["truth"] / "sum.json").write_text(json.dumps({"sum": sum(numbers)}))
     ctx.metrics["numbers"] = len(numbers)
     ctx.metrics["rig_bars"] = params.rig.bars
+    # A timing, as every real stage reports: differs between two runs of identical work.
+    ctx.metrics["source_seconds"] = time.perf_counter() - started
 
 
 STAGE = Stage(name="source", inputs=(), params=SourceParams, run=run, extra_outputs=("truth",),
