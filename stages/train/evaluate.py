@@ -36,6 +36,26 @@ def image_metrics(pred: torch.Tensor, target: torch.Tensor, scale: bool, lpips=N
     return out
 
 
+def coverage_metrics(pred: torch.Tensor, alpha: torch.Tensor, target: torch.Tensor,
+                     matte: torch.Tensor) -> dict[str, float]:
+    """Where the head is in the capture but not in the render, over images [K, H, W(, 3)].
+
+    ``pred`` and ``target`` are the linear RGB images (``pred`` at the target's exposure where
+    the split scales), ``alpha`` the render's opacity and ``matte`` the capture's matte.
+    ``uncovered_fraction``: share of the capture's foreground pixels (matte >= 0.5) that the
+    model leaves transparent (opacity < 0.5), i.e. parts of the head the primitives' layout
+    does not reach; ``uncovered_error_share``: share of the images' squared error on them.
+    Together they tell how much of a split's PSNR the layout costs: what a better appearance
+    model cannot win back.
+    """
+    foreground = matte >= 0.5
+    uncovered = foreground & (alpha < 0.5)
+    sq_error = ((pred - target) ** 2).sum(-1)
+    total = float(sq_error.sum())
+    return {"uncovered_fraction": float(uncovered.sum()) / max(int(foreground.sum()), 1),
+            "uncovered_error_share": float(sq_error[uncovered].sum()) / total if total > 0 else 0.0}
+
+
 def curve_png(path: Path, curves: dict[str, list], title: str) -> None:
     """Held-out PSNR against training wall-clock time, one line per model."""
     import matplotlib
@@ -85,4 +105,12 @@ def results_table(metrics: dict[str, float], models: list[str]) -> str:
         parts = ", ".join(f"{title} {d:.2f} mm ({d / max(spacing, 1e-12):.1f}x)" for title, d in distances)
         lines.append(f"\nHeld-out guide meshes to the nearest training mesh (RMS vertex distance): {parts}; "
                      f"training meshes are {spacing:.2f} mm from each other.")
+    coverage = [(names[m], title, metrics.get(f"{m}_{split}_uncovered_fraction"),
+                 metrics.get(f"{m}_{split}_uncovered_error_share"))
+                for m in models for split, title in SPLIT_TITLES.items()]
+    if all(f is not None and e is not None for *_, f, e in coverage):
+        # What the layout misses (the capture's foreground rendered transparent): no appearance model wins that back.
+        parts = "; ".join(f"{name} {title} {100 * f:.1f}% ({100 * e:.0f}% of the error)"
+                          for name, title, f, e in coverage)
+        lines.append(f"\nForeground the model leaves transparent (share of the error there): {parts}.")
     return "\n".join(lines) + "\n"

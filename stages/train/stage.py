@@ -41,7 +41,8 @@ from avatar.travatar import LightBasis
 from pipeline.errors import ConfigError, InputError
 from pipeline.stage import Stage, StageContext, StageParams
 from stages.train.data import TrainData, load_train_data
-from stages.train.evaluate import SCALED_SPLITS, curve_png, eval_pairs, image_metrics, results_table
+from stages.train.evaluate import (SCALED_SPLITS, coverage_metrics, curve_png, eval_pairs, image_metrics,
+                                   results_table)
 from stages.train.splits import SPLITS, Splits, make_splits, nearest_training_distance_mm
 from stages.train.trainer import LossWeights, ModelTrainer, PruneSchedule, Renderer, TrainTensors
 
@@ -290,7 +291,7 @@ def train(ctx: StageContext, rank: int = 0, world_size: int = 1, device: torch.d
             if not pairs[split]:
                 ctx.log.warning("split %s is empty; no metrics for it", split)
                 continue
-            pred, _ = renderer.render_images(tensors, pairs[split])
+            pred, alpha = renderer.render_images(tensors, pairs[split])
             target = _targets(tensors, pairs[split])
             scale = split in SCALED_SPLITS
             for name, value in image_metrics(pred, target, scale, lpips).items():
@@ -301,6 +302,8 @@ def train(ctx: StageContext, rank: int = 0, world_size: int = 1, device: torch.d
                                                              + 20.0 * float(np.log10(image_scale)))
             if scale:
                 pred = pred * _scales(pred, target)
+            for name, value in coverage_metrics(pred, alpha, target, _mattes(tensors, pairs[split])).items():
+                metrics[f"{kind}_{split}_{name}"] = value
             renders[kind][split] = pred
     if not lead:
         _drop_spill(ctx, rank, data)
@@ -470,6 +473,10 @@ def _tensorboard_writer(ctx: StageContext):
 
 def _targets(t: TrainTensors, pairs: list[tuple[int, int]]) -> torch.Tensor:
     return torch.stack([t.image(f, c).view(t.height, t.width, 3) for f, c in pairs])
+
+
+def _mattes(t: TrainTensors, pairs: list[tuple[int, int]]) -> torch.Tensor:
+    return torch.stack([t.mattes[f, c].float().view(t.height, t.width) for f, c in pairs]).to(t.device)
 
 
 def _scales(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:

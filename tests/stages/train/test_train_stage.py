@@ -51,6 +51,11 @@ def test_stage_outputs_metrics_table_and_models(capture, tmp_path):
     assert metrics["train_expression_spacing_mm"] > 0
     assert metrics["novel_perf_expression_distance_mm"] > metrics["train_expression_spacing_mm"]
     assert f"novel performance {metrics['novel_perf_expression_distance_mm']:.2f} mm" in table
+    for model in ("ours", "travatar"):
+        for split in SPLITS:
+            assert 0.0 <= metrics[f"{model}_{split}_uncovered_fraction"] <= 1.0
+            assert 0.0 <= metrics[f"{model}_{split}_uncovered_error_share"] <= 1.0
+    assert f"ours novel light {100 * metrics['ours_novel_light_uncovered_fraction']:.1f}%" in table
     assert (out / "learning_curve.png").stat().st_size > 0
     curve = json.loads((out / "curve.json").read_text())
     assert [p[0] for p in curve["ours"]] == [0, 6] and [p[0] for p in curve["travatar"]] == [0, 6]
@@ -151,3 +156,19 @@ def test_fit_frames_optimises_on_the_first_training_frames_only(capture, tmp_pat
     assert len(seen) == 1  # one frame (data index; splits.json holds capture frame numbers)
     assert metrics["fitted_frames"] == 1 and metrics["train_frames"] == len(splits["train"]) > 1
     assert np.isfinite(metrics["ours_train_psnr"]) and np.isfinite(metrics["ours_novel_light_psnr"])
+
+
+def test_coverage_metrics_count_the_foreground_left_transparent():
+    from stages.train.evaluate import coverage_metrics
+
+    matte = torch.zeros(2, 4, 4)
+    matte[:, :2] = 1.0  # 16 foreground pixels
+    alpha = torch.ones(2, 4, 4)
+    alpha[0, 0, :2] = 0.0  # 2 of them transparent in the render
+    target = torch.zeros(2, 4, 4, 3)
+    pred = torch.zeros(2, 4, 4, 3)
+    pred[0, 0, 0] = 1.0  # error 3 on an uncovered pixel
+    pred[1, 3, 3] = 1.0  # error 3 in the background, covered
+    out = coverage_metrics(pred, alpha, target, matte)
+    assert out == {"uncovered_fraction": 2 / 16, "uncovered_error_share": 0.5}
+    assert coverage_metrics(target, alpha, target, matte)["uncovered_error_share"] == 0.0
