@@ -34,11 +34,11 @@ class AvatarConfig(BaseModel):
         description="Axes in which the per-primitive view and light directions are fed to the appearance branch: "
                     "'world' (head space, as the paper) or 'primitive' (each primitive's own rotated axes, so the "
                     "cosine to the surface normal is one input channel everywhere on the UV layout). Both models' "
-                    "view directions follow it. The same vectors either way. Measured on the tiny preset with one "
-                    "seed (benchmarks/bench_headroom.py): 'primitive' gained about 1 dB on every split for alice "
-                    "and lost 1.4 / 2.3 dB on bob's novel performance / both; but the seed alone moves 'world' "
-                    "by 1 dB on alice and by 2.2 dB on bob's novel performance (benchmarks/bench_seeds.py), so "
-                    "neither is resolved, and 'world', the paper's, stays the default.")
+                    "view directions follow it. The same vectors either way. Measured on the tiny preset over "
+                    "seeds 0-4 at z = 16 (benchmarks/bench_seeds.py, SEEDS_TAG=prim): 'primitive' minus 'world' "
+                    "for ours is -0.01 / -0.51 / -0.61 dB on bob and -0.12 / -0.44 / -0.16 dB on alice (novel "
+                    "light / performance / both), no interval excluding 0; it gains nothing, so 'world', the "
+                    "paper's, stays the default.")
     light_basis: int = Field(0, description="TRAvatar*: number of training lights in the fixed one-hot light basis (0 = ours).")
 
     @model_validator(mode="after")
