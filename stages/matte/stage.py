@@ -36,7 +36,8 @@ Output::
 
     mattes/<cam>/<index:06d>.png   16-bit alpha, one per received image
     contact_sheet.png              mattes of a few frames from every camera (F and OLAT)
-    model.json                     which cached model was used, training and SOC records
+    model.json                     which model was used (key, adapted weights' digest), its training
+                                   and SOC loss records; no timings, so a rerun writes the same bytes
     metrics.json                   images_per_second (EXR read + network, images matted by this run;
                                    from the cached per-image times when every image was reused),
                                    training_seconds (0 when the model came from the cache),
@@ -269,6 +270,15 @@ def inference_items(cameras: dict[str, CameraInputs], params: MatteParams, devic
     return items
 
 
+def _without_timings(record: Any) -> Any:
+    """``record`` (nested dicts and lists) without its ``seconds`` entries."""
+    if isinstance(record, dict):
+        return {k: _without_timings(v) for k, v in record.items() if k != "seconds"}
+    if isinstance(record, list):
+        return [_without_timings(v) for v in record]
+    return record
+
+
 def run(ctx: StageContext) -> None:
     """Matte every image of the capture."""
     from pipeline.itemcache import stage_item_cache
@@ -290,13 +300,16 @@ def run(ctx: StageContext) -> None:
     if params.method == "modnet":
         image_scale = _image_scale(manifest)
         model, meta, cached = trained_model(ctx, params, image_scale, device)
-        record.update({"model_key": meta.get("key"), "model_cached": cached, "training": meta.get("training"),
-                       "render_seconds": meta.get("render_seconds")})
+        # model.json holds what decides the mattes (which model, its training and SOC records);
+        # timings and whether the model came from the cache go to the metrics only, so a rerun
+        # that mattes identically writes identical files and the stages below stay fresh.
+        record.update({"model_key": meta.get("key"), "training": _without_timings(meta.get("training"))})
         ctx.metrics["model_cached"] = int(cached)
         ctx.metrics["training_seconds"] = 0.0 if cached else float(meta["training"]["seconds"])
+        ctx.metrics["training_render_seconds"] = 0.0 if cached else float(meta.get("render_seconds") or 0.0)
         unlabelled = soc_inputs(cameras, params.soc_frames, params.soc.seed)
         model, soc_record = soc_adapt(model, unlabelled, params.soc, device)
-        record["soc"] = soc_record
+        record["soc"] = _without_timings(soc_record)
         ctx.metrics["soc_seconds"] = float(soc_record["seconds"])
         model_dir, model_digest = adapted_model_dir(ctx, model)
         record["adapted_weights_digest"] = model_digest

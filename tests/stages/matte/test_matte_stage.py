@@ -75,6 +75,21 @@ def test_matte_quality_regression(matted):
 
 
 @pytest.mark.slow
+def test_rerun_reproduces_every_file_but_the_metrics(matted, tmp_path):
+    """A second run (model from the shared cache, SOC and inference redone) writes the same bytes
+    everywhere but metrics.json, so the stages below it are not rerun (early cutoff)."""
+    work, out, _, _ = matted
+    (tmp_path / ".shared_cache").symlink_to(work / ".shared_cache")
+    again = run_stage_for_test(STAGE, tmp_path, inputs={"capture": work / "capture"}, params=SMALL_TRAINING)
+    assert json.loads((again / "metrics.json").read_text())["model_cached"] == 1
+    files = sorted(p.relative_to(out) for p in out.rglob("*") if p.is_file() and p.name != "metrics.json")
+    assert files == sorted(p.relative_to(again) for p in again.rglob("*")
+                           if p.is_file() and p.name != "metrics.json")
+    for rel in files:
+        assert (out / rel).read_bytes() == (again / rel).read_bytes(), rel
+
+
+@pytest.mark.slow
 def test_empty_studio_gives_empty_mattes(matted, tmp_path):
     work, _, _, _ = matted
     (tmp_path / ".shared_cache").symlink_to(work / ".shared_cache")  # reuse the trained model
