@@ -40,7 +40,8 @@ Output::
                                    and SOC loss records; no timings, so a rerun writes the same bytes
     metrics.json                   images_per_second (EXR read + network, images matted by this run;
                                    from the cached per-image times when every image was reused),
-                                   training_seconds (0 when the model came from the cache),
+                                   training_seconds and training_render_seconds (0 when the model
+                                   came from the cache),
                                    model_cached, soc_seconds, images, inference_seconds,
                                    images_reused, images_computed (per-image cache)
 """
