@@ -11,6 +11,7 @@ outputs, checkpoints and the metrics file named in the job.
 
 from __future__ import annotations
 
+import gc
 import json
 import logging
 import os
@@ -69,6 +70,9 @@ def main(argv: list[str] | None = None) -> int:
         train(ctx, rank=rank, world_size=world, device=device)
         if rank == 0:
             Path(job["metrics"]).write_text(json.dumps(metrics))
+        # Release every DDP wrapper (and its reference to the process group) before the group is
+        # torn down, and let no rank tear it down while another still talks to it.
+        gc.collect()
         dist.barrier()
     finally:
         dist.destroy_process_group()

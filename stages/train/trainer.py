@@ -23,6 +23,7 @@ import logging
 import math
 import os
 import time
+import weakref
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
@@ -198,11 +199,18 @@ class _BatchLoss(nn.Module):
     def __init__(self, trainer: "ModelTrainer") -> None:
         super().__init__()
         self.model = trainer.model  # the parameters DDP synchronises
-        self._losses = trainer.losses
+        # A weak reference: the trainer owns the DDP wrapper, so a strong one back would make a
+        # cycle that keeps DDP (and through it the process group) alive past
+        # destroy_process_group until a garbage collection or interpreter exit, where gloo's
+        # teardown aborted a rank in CI ("terminate called without an active exception").
+        self._losses = weakref.WeakMethod(trainer.losses)
 
     def forward(self, frames: torch.Tensor, cams: torch.Tensor, pix: torch.Tensor,
                 eps: torch.Tensor) -> tuple[torch.Tensor, dict[str, float]]:
-        return self._losses(frames, cams, pix, eps)
+        losses = self._losses()
+        if losses is None:
+            raise RuntimeError("the trainer this DDP loss belongs to has been released")
+        return losses(frames, cams, pix, eps)
 
 
 class ModelTrainer:
@@ -235,7 +243,7 @@ class ModelTrainer:
         self.gen.manual_seed(seed)
         self.state = TrainState(lr=lr)
         self._good: dict | None = None
-        self._loss_fn: Callable = self.losses
+        self._ddp_loss: nn.Module | None = None
         self.prune = prune if prune is not None and 0 < prune.at_iteration <= iterations else None
         # [P] largest opacity each primitive added to a training ray in the pruning window.
         self.prim_alpha_max = torch.zeros(self.model.prim_keep.numel(), device=tensors.device)
@@ -245,7 +253,7 @@ class ModelTrainer:
             dev = tensors.device
             # Both kinds use every parameter in every training iteration (unseen bars'
             # intensities are rows of one indexed tensor), so DDP needs no unused-parameter search.
-            self._loss_fn = DistributedDataParallel(_BatchLoss(self), device_ids=[dev] if dev.type == "cuda" else None)
+            self._ddp_loss = DistributedDataParallel(_BatchLoss(self), device_ids=[dev] if dev.type == "cuda" else None)
 
     # ---- checkpoints -------------------------------------------------------------------------
     def _snapshot(self) -> dict:
@@ -385,7 +393,7 @@ class ModelTrainer:
         eps = torch.randn(self.batch_size, self.model.config.latent_dim, generator=self.gen)
         if self.world_size > 1:
             share = self._share()
-            total, terms = self._loss_fn(frames[share], cams[share], pix[share], eps[share])
+            total, terms = self._ddp_loss(frames[share], cams[share], pix[share], eps[share])
             # DDP expects a backward after each forward; its all-reduce also keeps the ranks in step.
             self.optim.zero_grad(set_to_none=True)
             total.backward()

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gc
 import json
 import logging
 from pathlib import Path
@@ -68,5 +69,8 @@ def rollback_rank(rank: int, world_size: int, init_file: str, capture: dict[str,
 
         trainer.run(_Quiet())
         (workdir / f"rank{rank}.json").write_text(json.dumps(record[1:]))  # record[0]: before training
+        trainer = None  # its curve hook closes over it: a cycle only a collection frees
+        gc.collect()
+        dist.barrier()
     finally:
         dist.destroy_process_group()

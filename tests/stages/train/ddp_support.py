@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gc
 import json
 import logging
 from pathlib import Path
@@ -62,5 +63,7 @@ def rank_main(rank: int, world_size: int, init_file: str, capture: dict[str, Pat
     try:
         curve = loss_curve(capture, workdir, steps, batch_size, rank, world_size)
         (workdir / f"rank{rank}.json").write_text(json.dumps(curve))
+        gc.collect()  # no DDP wrapper outlives the group (see ddp_worker.main)
+        dist.barrier()
     finally:
         dist.destroy_process_group()

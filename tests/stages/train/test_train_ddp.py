@@ -73,6 +73,37 @@ def test_two_gloo_ranks_give_the_single_process_loss_curve(capture, tmp_path):
     assert len({round(t["loss"], 6) for t in single}) == steps
 
 
+def test_a_ddp_trainer_is_freed_without_a_garbage_collection(capture, tmp_path):
+    """The DDP wrapper must not outlive its trainer: a reference cycle kept it (and the process
+    group it holds) alive past destroy_process_group, and a rank aborted at exit in CI."""
+    import gc
+    import weakref
+
+    from stages.train.data import load_train_data
+    from train_synth import small_model
+
+    dist.init_process_group("gloo", init_method=f"file://{tmp_path / 'init'}", rank=0, world_size=1)
+    # The first optimizer a process builds imports torch._dynamo, whose import leaves frames
+    # (the caller's among them) in cycles; build one first so only the trainer's own references count.
+    torch.optim.Adam([torch.zeros(1, requires_grad=True)])
+    gc.collect()
+    gc.disable()
+    try:
+        data = load_train_data(capture, 24, logging.getLogger("test"))
+        _, tensors, _, renderer = small_model(data)
+        tr = trainer_mod.ModelTrainer(renderer, tensors, np.arange(len(data.bar)), iterations=1, batch_size=4,
+                                      rays_per_image=16, lr=1e-3, weights=trainer_mod.LossWeights(), seed=0,
+                                      ckpt_path=tmp_path / "c.pt", checkpoint_every=100, spike_factor=10.0,
+                                      log=logging.getLogger("test"), rank=0, world_size=2)
+        wrapper = weakref.ref(tr._ddp_loss)
+        assert wrapper() is not None
+        del tr
+        assert wrapper() is None
+    finally:
+        gc.enable()
+        dist.destroy_process_group()
+
+
 def test_stage_on_two_processes_resumes_a_single_process_checkpoint(capture, tmp_path, monkeypatch, caplog):
     whole = run_stage_for_test(STAGE, tmp_path / "a", capture, BASE)
 
