@@ -28,7 +28,16 @@ class AvatarConfig(BaseModel):
     geometry_channels: int = Field(32, description="Hidden channels of the primitive position/rotation/scale delta branch.")
     steps_per_ray: int = Field(32, description="Raymarch samples per ray over its span through the union of primitive boxes.")
     prim_overlap: float = Field(1.6, description="Primitive edge length as a multiple of the spacing of neighbouring guide points.")
-    layout_theta_deg: float = Field(105.0, description="Half-width, in degrees around +z, of the cylindrical UV layout over the head.")
+    layout_theta_deg: float = Field(105.0, description="Half-width, in degrees around +z, of the UV layout over the head.")
+    layout_projection: Literal["latlong", "azimuthal"] = Field(
+        "latlong",
+        description="How the N x N grid maps onto the head (avatar.layout.grid_directions): 'latlong' (rows of "
+                    "equal elevation, pole straight up, crown above the top row left out) or 'azimuthal' "
+                    "(equidistant map centred in front at layout_centre_elevation_deg, reaching over the crown).")
+    layout_elevation_deg: tuple[float, float] = Field(
+        (-75.0, 70.0), description="Bottom and top of the grid in degrees of elevation (along the central meridian "
+                                   "for 'azimuthal', where a top above 90 reaches over the crown towards the back).")
+    layout_centre_elevation_deg: float = Field(0.0, description="'azimuthal' only: elevation of the map's centre.")
     direction_frame: Literal["world", "primitive"] = Field(
         "world",
         description="Axes in which the per-primitive view and light directions are fed to the appearance branch: "

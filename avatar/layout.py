@@ -24,8 +24,12 @@ the crown needs another parametrisation (a grid whose pole is not on the head), 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from avatar.config import AvatarConfig
 
 
 @dataclass(frozen=True)
@@ -66,14 +70,55 @@ def _barycentric(points: np.ndarray, tri_xyz: np.ndarray) -> np.ndarray:
     return bary / bary.sum(-1, keepdims=True)
 
 
+def grid_directions(n: int, projection: str = "latlong", theta_max_deg: float = 105.0,
+                    elevation_range_deg: tuple[float, float] = (-75.0, 70.0),
+                    centre_elevation_deg: float = 0.0) -> np.ndarray:
+    """Unit directions [N*N, 3] (head space: +x actor's left, +y up, +z front) of the grid points.
+
+    Row 0 is the top, columns go from -x to +x. ``latlong``: rows at equal steps of elevation
+    over ``elevation_range_deg``, columns at equal steps of azimuth over +-``theta_max_deg``;
+    its pole is straight up, so the crown above the top row is left out and the top rows'
+    columns crowd together. ``azimuthal``: an azimuthal equidistant map centred on the
+    direction at ``centre_elevation_deg`` in front; a grid point (x, y) lies at angular
+    distance hypot(x, y) from the centre in the direction (x, y), with x over
+    +-``theta_max_deg`` and y from ``elevation_range_deg[1]`` down to ``[0]`` measured along the
+    central meridian (a top above 90 degrees reaches over the crown). Its only singular
+    point is the centre's antipode, behind the head; its corners reach round to the back.
+    """
+    if projection == "latlong":
+        az = np.deg2rad(np.linspace(-theta_max_deg, theta_max_deg, n))  # [N] columns
+        el = np.deg2rad(np.linspace(elevation_range_deg[1], elevation_range_deg[0], n))  # [N] rows
+        el_g, az_g = np.meshgrid(el, az, indexing="ij")  # [N, N]
+        return np.stack([np.cos(el_g) * np.sin(az_g), np.sin(el_g), np.cos(el_g) * np.cos(az_g)], -1).reshape(-1, 3)
+    if projection == "azimuthal":
+        e0 = np.deg2rad(centre_elevation_deg)
+        front = np.array([0.0, np.sin(e0), np.cos(e0)])
+        right = np.array([1.0, 0.0, 0.0])
+        up = np.array([0.0, np.cos(e0), -np.sin(e0)])
+        x = np.deg2rad(np.linspace(-theta_max_deg, theta_max_deg, n))
+        y = np.deg2rad(np.linspace(elevation_range_deg[1], elevation_range_deg[0], n)) - e0
+        y_g, x_g = np.meshgrid(y, x, indexing="ij")  # [N, N]
+        dist = np.hypot(x_g, y_g)
+        if dist.max() >= np.pi:
+            raise ValueError(f"azimuthal layout reaches {np.rad2deg(dist.max()):.0f} deg from its centre; "
+                             "narrow layout_theta_deg or layout_elevation_deg to stay under 180")
+        safe = np.where(dist > 0, dist, 1.0)
+        dirs = (np.cos(dist)[..., None] * front
+                + (np.sin(dist) / safe)[..., None] * (x_g[..., None] * right + y_g[..., None] * up))
+        return dirs.reshape(-1, 3)
+    raise ValueError(f"unknown layout projection {projection!r}: use 'latlong' or 'azimuthal'")
+
+
 def build_layout(mean_vertices: np.ndarray, triangles: np.ndarray, prims_per_side: int,
                  theta_max_deg: float = 105.0, overlap: float = 1.4,
-                 elevation_range_deg: tuple[float, float] = (-75.0, 70.0)) -> GuideLayout:
+                 elevation_range_deg: tuple[float, float] = (-75.0, 70.0), projection: str = "latlong",
+                 centre_elevation_deg: float = 0.0) -> GuideLayout:
     """Place N x N primitive anchors on the outer surface of ``mean_vertices`` [V, 3].
 
     ``triangles`` [T, 3] are the mesh's triangles (quads split beforehand). Rows of the
     grid go from the top of the head (row 0) to the chin/neck, columns from the actor's
-    right to left as seen by a frontal camera.
+    right to left as seen by a frontal camera; ``grid_directions`` says where the grid
+    points look from the head's centre for each ``projection``.
     """
     import trimesh
 
@@ -84,10 +129,7 @@ def build_layout(mean_vertices: np.ndarray, triangles: np.ndarray, prims_per_sid
     centre = 0.5 * (lo + hi)
     radius = float(np.linalg.norm(hi - lo))
     n = prims_per_side
-    az = np.deg2rad(np.linspace(-theta_max_deg, theta_max_deg, n))  # [N] columns
-    el = np.deg2rad(np.linspace(elevation_range_deg[1], elevation_range_deg[0], n))  # [N] rows
-    el_g, az_g = np.meshgrid(el, az, indexing="ij")  # [N, N]
-    dirs = np.stack([np.cos(el_g) * np.sin(az_g), np.sin(el_g), np.cos(el_g) * np.cos(az_g)], -1).reshape(-1, 3)
+    dirs = grid_directions(n, projection, theta_max_deg, elevation_range_deg, centre_elevation_deg)
     origins = centre + dirs * radius * 2.0
     locs, ray_ids, tri_ids = mesh.ray.intersects_location(origins, -dirs, multiple_hits=True)
     num = n * n
@@ -133,6 +175,13 @@ def build_layout(mean_vertices: np.ndarray, triangles: np.ndarray, prims_per_sid
         guide_vertex_ids=used.astype(np.int64), anchor_tris=anchor_tris.astype(np.int64),
         anchor_bary=bary.astype(np.float32), normal_sign=sign.astype(np.float32),
         half_extent_m=half.astype(np.float32), mean_guide_vertices=verts[used].astype(np.float32))
+
+
+def layout_for(config: "AvatarConfig", mean_vertices: np.ndarray, triangles: np.ndarray) -> GuideLayout:
+    """``build_layout`` with the grid, projection and overlap an ``AvatarConfig`` names."""
+    return build_layout(mean_vertices, triangles, config.prims_per_side, config.layout_theta_deg,
+                        config.prim_overlap, tuple(config.layout_elevation_deg), config.layout_projection,
+                        config.layout_centre_elevation_deg)
 
 
 def triangulate(faces: np.ndarray) -> np.ndarray:

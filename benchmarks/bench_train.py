@@ -19,7 +19,7 @@ import numpy as np
 import torch
 
 from avatar.config import AvatarConfig
-from avatar.layout import build_layout
+from avatar.layout import layout_for
 from avatar.model import RelightableMVP
 from avatar.raymarch import raymarch
 from scene.camera import Camera, look_at
@@ -59,7 +59,7 @@ def _tensors(width_px: int, frames: int, device: torch.device) -> tuple[TrainTen
 def _measure(config: AvatarConfig, width_px: int, batch: int, rays: int, iterations: int,
              device: torch.device, render: bool = True) -> dict[str, float]:
     t, verts, tris = _tensors(width_px, 2, device)
-    layout = build_layout(verts, tris, config.prims_per_side, config.layout_theta_deg, config.prim_overlap)
+    layout = layout_for(config, verts, tris)
     t.guide_vertices = torch.as_tensor(verts[layout.guide_vertex_ids])[None].expand(2, -1, -1).contiguous().to(device)
     torch.manual_seed(0)
     model = RelightableMVP(config, layout, num_bars=1).to(device)

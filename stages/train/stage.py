@@ -34,7 +34,7 @@ from pydantic import Field
 from avatar.capacity import Capacity, CapacityInputError, CapacityRule, CaptureStats, choose_capacity, \
     count_expression_modes, footprint_from_mattes
 from avatar.config import AvatarConfig
-from avatar.layout import build_layout
+from avatar.layout import layout_for
 from avatar.io import save_trained
 from avatar.model import RelightableMVP, count_parameters
 from avatar.travatar import LightBasis
@@ -220,8 +220,7 @@ def train(ctx: StageContext, rank: int = 0, world_size: int = 1, device: torch.d
     if lead:
         _write_capacity(ctx.out / "capacity.json", params, capacity, avatar)
     mean_mesh = data.vertices[train_frames].mean(0)
-    layout = build_layout(mean_mesh, data.triangles, avatar.prims_per_side,
-                          avatar.layout_theta_deg, avatar.prim_overlap)
+    layout = layout_for(avatar, mean_mesh, data.triangles)
     tensors = _tensors(data, layout.guide_vertex_ids, device)
     basis_bars = sorted(int(b) for b in np.unique(data.bar[train_frames]))
     fitted_frames = train_frames[:params.fit_frames] if params.fit_frames else train_frames

@@ -8,7 +8,7 @@ import torch
 
 from avatar.config import AvatarConfig
 from avatar.io import load_trained, save_trained
-from avatar.layout import build_layout
+from avatar.layout import build_layout, grid_directions, layout_for
 from avatar.metrics import exposure_scale, psnr, ssim
 from avatar.model import RelightableMVP
 from avatar.raymarch import raymarch
@@ -50,6 +50,49 @@ def test_layout_anchors_lie_on_the_outer_surface():
     assert np.all(radius > 0.095) and np.all(radius < 0.1001)
     assert points[:, 2].mean() > 0.0  # the grid faces +z (the cameras)
     assert len(layout.guide_vertex_ids) <= 3 * 64
+
+
+def test_latlong_grid_rows_are_elevations_and_columns_azimuths():
+    d = grid_directions(8, "latlong", 90.0, (-60.0, 60.0)).reshape(8, 8, 3)
+    el = np.rad2deg(np.arcsin(d[..., 1]))
+    az = np.rad2deg(np.arctan2(d[..., 0], d[..., 2]))
+    np.testing.assert_allclose(el[:, 0], np.linspace(60, -60, 8), atol=1e-9)  # row 0 at the top
+    np.testing.assert_allclose(az[0], np.linspace(-90, 90, 8), atol=1e-9)  # actor's right to left
+    np.testing.assert_allclose(el, el[:, :1].repeat(8, 1), atol=1e-9)
+
+
+def test_azimuthal_grid_is_equidistant_from_its_centre_and_reaches_over_the_crown():
+    n, centre_el = 9, 20.0
+    d = grid_directions(n, "azimuthal", 100.0, (-70.0, 110.0), centre_el).reshape(n, n, 3)
+    np.testing.assert_allclose(np.linalg.norm(d, axis=-1), 1.0, atol=1e-12)
+    front = np.array([0.0, np.sin(np.deg2rad(centre_el)), np.cos(np.deg2rad(centre_el))])
+    x = np.linspace(-100, 100, n)
+    y = np.linspace(110, -70, n) - centre_el
+    dist = np.rad2deg(np.arccos(np.clip(d @ front, -1, 1)))
+    np.testing.assert_allclose(dist, np.hypot(x[None], y[:, None]), atol=1e-6)  # angle from the centre = grid radius
+    mid = n // 2
+    np.testing.assert_allclose(d[:, mid, 0], 0.0, atol=1e-12)  # the central column is the front meridian ...
+    assert d[0, mid, 1] > 0.9 and d[0, mid, 2] < 0.0  # ... whose top is past the vertical, over the crown
+    assert np.all(np.diff(d[mid, :, 0]) > 0)  # columns go from -x to +x
+    with pytest.raises(ValueError, match="under 180"):
+        grid_directions(8, "azimuthal", 150.0, (-90.0, 150.0))
+    with pytest.raises(ValueError, match="projection"):
+        grid_directions(8, "mercator")
+
+
+def test_azimuthal_layout_covers_the_top_of_the_head_the_latlong_leaves_out():
+    verts, faces = _sphere()
+
+    def closest_to_the_top_deg(config: AvatarConfig) -> float:
+        layout = layout_for(config, verts, faces)
+        points = (layout.mean_guide_vertices[layout.anchor_tris] * layout.anchor_bary[..., None]).sum(1)
+        return float(np.rad2deg(np.arccos(points[:, 1] / np.linalg.norm(points, axis=-1))).min())
+
+    latlong = SMALL.model_copy(update={"prims_per_side": 16})  # only the grid matters here
+    assert closest_to_the_top_deg(latlong) > 19.0  # the latlong grid stops at its top row, 70 degrees up
+    azimuthal = latlong.model_copy(update={"layout_projection": "azimuthal", "layout_centre_elevation_deg": 20.0,
+                                         "layout_elevation_deg": (-75.0, 100.0)})
+    assert closest_to_the_top_deg(azimuthal) < 15.0
 
 
 def test_decoded_primitives_sit_on_the_guide_mesh(model):
