@@ -28,8 +28,7 @@ Usage (stable API; all positions in head space, metres; images linear RGB)::
 
     # A point light at p (head space): decode RGB voxels, raymarch.
     rgb = model.decode_rgb(geo, cam_pos, torch.tensor([p], dtype=torch.float32))  # [1, P, M, M, M, 3]
-    out = raymarch(geo.primitives(rgb), rays_o, rays_d, model.config.steps_per_ray,
-                   window_boxes=model.config.ray_window_boxes)
+    out = raymarch(geo.primitives(rgb), rays_o, rays_d, model.config.steps_per_ray)
     image = out.rgb.view(H, W, 3) / image_scale     # alpha: out.alpha.view(H, W)
 
     # K lights (an environment map as K directional-ish lights far away, with RGB weights
@@ -39,8 +38,7 @@ Usage (stable API; all positions in head space, metres; images linear RGB)::
         lp = light_positions[k:k + chunk]           # [k', 3]
         rgb_k = model.decode_rgb(geo.expand(len(lp)), cam_pos.expand(len(lp), 3), lp)   # [k', P, M, M, M, 3]
         total = total + (rgb_k * w[k:k + chunk, None, None, None, None, :]).sum(0, keepdim=True)
-    out = raymarch(geo.primitives(total), rays_o, rays_d, model.config.steps_per_ray,
-                   window_boxes=model.config.ray_window_boxes)
+    out = raymarch(geo.primitives(total), rays_o, rays_d, model.config.steps_per_ray)
 
 A directional light is a point light far away (e.g. 100 m along the direction): the
 network was trained on near-field bars 1-1.5 m away, so very distant lights extrapolate.

@@ -27,11 +27,6 @@ class AvatarConfig(BaseModel):
         description="Output channels of the opacity branch's transposed convs; the last = M.")
     geometry_channels: int = Field(32, description="Hidden channels of the primitive position/rotation/scale delta branch.")
     steps_per_ray: int = Field(32, description="Raymarch samples per ray over its span through the union of primitive boxes.")
-    ray_window_boxes: float = Field(
-        0.0, ge=0.0,
-        description="Sample each ray over at most this many mean primitive box edges past its first box entry "
-                    "(0 = over its whole span to the last box exit). A frontal ray's span crosses the whole head, "
-                    "but it is opaque within the first few centimetres; a window spends the steps there.")
     prim_overlap: float = Field(1.6, description="Primitive edge length as a multiple of the spacing of neighbouring guide points.")
     layout_theta_deg: float = Field(105.0, description="Half-width, in degrees around +z, of the UV layout over the head.")
     layout_projection: Literal["latlong", "azimuthal"] = Field(

@@ -112,23 +112,11 @@ def box_intervals(prims: Primitives, rays_o: torch.Tensor, rays_d: torch.Tensor
 
 
 @torch.no_grad()
-def sample_window(prims: Primitives, window_boxes: float) -> torch.Tensor | None:
-    """The longest span [B] a ray is sampled over: ``window_boxes`` mean box edges (None for 0 = no limit).
-
-    A box edge is a primitive's longest edge, averaged over the primitives of each batch element.
-    """
-    if window_boxes <= 0:
-        return None
-    return window_boxes * 2.0 * prims.half_extent.detach().amax(-1).mean(-1)
-
-
-@torch.no_grad()
-def ray_samples(hit: torch.Tensor, t_near: torch.Tensor, t_far: torch.Tensor, steps: int,
-                max_span: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+def ray_samples(hit: torch.Tensor, t_near: torch.Tensor, t_far: torch.Tensor, steps: int
+                ) -> tuple[torch.Tensor, torch.Tensor]:
     """Sample distances [B, R, S] (midpoints of S equal steps over each ray's span) and step length [B, R].
 
-    ``max_span`` [B]: sample at most this far past a ray's first box entry (None: to its last
-    exit). A ray that hits no box gets step length 0 (it renders black and transparent).
+    A ray that hits no box gets step length 0 (it renders black and transparent).
     """
     inf = torch.finfo(t_near.dtype).max
     t_min = torch.where(hit, t_near, torch.full_like(t_near, inf)).amin(-1)  # [B, R]
@@ -136,8 +124,6 @@ def ray_samples(hit: torch.Tensor, t_near: torch.Tensor, t_far: torch.Tensor, st
     any_hit = hit.any(-1)
     t_min = torch.where(any_hit, t_min, torch.zeros_like(t_min))
     t_max = torch.where(any_hit, t_max, torch.zeros_like(t_max))
-    if max_span is not None:
-        t_max = torch.minimum(t_max, t_min + max_span[:, None])
     dt = (t_max - t_min) / steps  # [B, R]
     s = torch.arange(steps, dtype=t_near.dtype, device=t_near.device) + 0.5
     t = t_min[..., None] + s * dt[..., None]  # [B, R, S]
@@ -187,27 +173,25 @@ def _sample_share(sigma: torch.Tensor, dt: torch.Tensor) -> torch.Tensor:
 
 
 def raymarch(prims: Primitives, rays_o: torch.Tensor, rays_d: torch.Tensor, steps: int,
-             max_pairs: int = 1 << 23, prim_stats: bool = False, window_boxes: float = 0.0) -> RenderResult:
+             max_pairs: int = 1 << 23, prim_stats: bool = False) -> RenderResult:
     """Render rays [B, R, 3] (origins, unit directions; head space) through ``prims``: the fast path.
 
     Differentiable in the primitives' geometry, colours and densities. Rays are processed in
     chunks so that no [B, R_chunk, P] intermediate exceeds ``max_pairs`` entries.
     ``prim_stats``: also return ``prim_alpha`` [B, P] (see ``RenderResult``; not differentiable).
-    ``window_boxes``: sample each ray over at most this many mean box edges past its first
-    entry (``sample_window``; 0 = its whole span).
     """
     b, r, _ = rays_o.shape
     p = prims.centre.shape[1]
     chunk = max(1, min(r, max_pairs // max(1, b * p)))
     if chunk < r:
-        parts = [raymarch(prims, rays_o[:, i:i + chunk], rays_d[:, i:i + chunk], steps, max_pairs, prim_stats,
-                          window_boxes) for i in range(0, r, chunk)]
+        parts = [raymarch(prims, rays_o[:, i:i + chunk], rays_d[:, i:i + chunk], steps, max_pairs, prim_stats)
+                 for i in range(0, r, chunk)]
         prim_alpha = torch.stack([x.prim_alpha for x in parts]).amax(0) if prim_stats else None
         return RenderResult(torch.cat([x.rgb for x in parts], 1), torch.cat([x.alpha for x in parts], 1),
                             prim_alpha)
     m = prims.voxels_per_side
     hit, t_near, t_far = box_intervals(prims, rays_o, rays_d)
-    t, dt = ray_samples(hit, t_near, t_far, steps, sample_window(prims, window_boxes))  # [B, R, S], [B, R]
+    t, dt = ray_samples(hit, t_near, t_far, steps)  # [B, R, S], [B, R]
     with torch.no_grad():
         k = max(1, int(hit.sum(-1).max()))
         cand_hit, cand = torch.topk(hit.to(torch.uint8), k, dim=-1)  # [B, R, K] candidates per ray
@@ -247,13 +231,12 @@ def raymarch(prims: Primitives, rays_o: torch.Tensor, rays_d: torch.Tensor, step
     return result
 
 
-def raymarch_reference(prims: Primitives, rays_o: torch.Tensor, rays_d: torch.Tensor, steps: int,
-                       window_boxes: float = 0.0) -> RenderResult:
+def raymarch_reference(prims: Primitives, rays_o: torch.Tensor, rays_d: torch.Tensor, steps: int) -> RenderResult:
     """The slow, obvious raymarcher: every sample against every primitive, then a loop over steps."""
     b, r, _ = rays_o.shape
     p = prims.centre.shape[1]
     hit, t_near, t_far = box_intervals(prims, rays_o, rays_d)
-    t, dt = ray_samples(hit, t_near, t_far, steps, sample_window(prims, window_boxes))
+    t, dt = ray_samples(hit, t_near, t_far, steps)
     x = rays_o[:, :, None] + t[..., None] * rays_d[:, :, None]  # [B, R, S, 3]
     sigma = torch.zeros(b, r, steps, dtype=prims.density.dtype, device=x.device)
     sigma_rgb = torch.zeros(b, r, steps, 3, dtype=prims.density.dtype, device=x.device)

@@ -87,8 +87,7 @@ def _measure(config: AvatarConfig, width_px: int, batch: int, rays: int, iterati
             geo = model.decode_geometry(mu)
             rgb = model.decode_rgb(geo, t.cam_pos[:1, 0], t.light_pos[:1])
             ro, rd = t.image_rays(0, 0)
-            raymarch(geo.primitives(rgb), ro[None], rd[None], config.steps_per_ray,
-                     window_boxes=config.ray_window_boxes)
+            raymarch(geo.primitives(rgb), ro[None], rd[None], config.steps_per_ray)
             if device.type == "cuda":
                 torch.cuda.synchronize()
             out["render_seconds_per_image"] = time.perf_counter() - start

@@ -61,7 +61,6 @@ class HeadRenderer:
         self.model = model.eval().to(device)
         self.rgb_scale = float(rgb_scale)
         self.steps = int(steps)
-        self.window_boxes = float(model.config.ray_window_boxes)
         self.light_batch = max(1, int(light_batch))
         self.device = torch.device(device)
 
@@ -102,7 +101,7 @@ class HeadRenderer:
         """The fast path: one raymarch of the light-summed voxel grids."""
         rays_o, rays_d = camera_rays(camera, self.device)
         rgb = self.summed_rgb(geometry, camera.center_world, light_pos, light_rgb)
-        res = raymarch(geometry.primitives(rgb), rays_o, rays_d, self.steps, window_boxes=self.window_boxes)
+        res = raymarch(geometry.primitives(rgb), rays_o, rays_d, self.steps)
         return _image(res.rgb[0] * self.rgb_scale, res.alpha[0], camera)
 
     @torch.no_grad()
@@ -116,7 +115,7 @@ class HeadRenderer:
         alpha = None
         for k in range(len(pos)):
             rgb = self.summed_rgb(geometry, camera.center_world, pos[k:k + 1], col[k:k + 1])
-            res = raymarch(geometry.primitives(rgb), rays_o, rays_d, self.steps, window_boxes=self.window_boxes)
+            res = raymarch(geometry.primitives(rgb), rays_o, rays_d, self.steps)
             total += res.rgb[0].double()
             alpha = res.alpha[0]
         if alpha is None:

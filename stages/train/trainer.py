@@ -181,7 +181,7 @@ class Renderer:
             intensity = self.model.bar_intensity(b_eff)
             rgb = self.rgb(geo, t.cam_pos[f, c][None], lp, b_eff, intensity)
             res = raymarch(geo.primitives(rgb), *[x[None] for x in t.image_rays(f, c)],
-                           self.model.config.steps_per_ray, window_boxes=self.model.config.ray_window_boxes)
+                           self.model.config.steps_per_ray)
             rgbs.append(res.rgb.view(t.height, t.width, 3))
             alphas.append(res.alpha.view(t.height, t.width))
         return torch.stack(rgbs), torch.stack(alphas)
@@ -331,8 +331,7 @@ class ModelTrainer:
         bar = t.bar[frames]
         rgb = self.r.rgb(geo, t.cam_pos[frames, cams], t.light_pos[frames], bar, model.bar_intensity(bar))
         record = self._recording()
-        res = raymarch(geo.primitives(rgb), ro, rd, model.config.steps_per_ray, prim_stats=record,
-                        window_boxes=model.config.ray_window_boxes)
+        res = raymarch(geo.primitives(rgb), ro, rd, model.config.steps_per_ray, prim_stats=record)
         if record:
             self.prim_alpha_max = torch.maximum(self.prim_alpha_max, res.prim_alpha.amax(0))
         pho = F.mse_loss(res.rgb, gt)

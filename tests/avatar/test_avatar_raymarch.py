@@ -6,7 +6,7 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from avatar.raymarch import Primitives, box_intervals, ray_samples, raymarch, raymarch_reference, sample_window
+from avatar.raymarch import Primitives, raymarch, raymarch_reference
 
 
 def _scene(b: int = 2, p: int = 6, m: int = 4, r: int = 40, density: float = 3.0, seed: int = 0,
@@ -39,33 +39,6 @@ def test_fast_path_matches_reference_forward_and_backward():
     g_ref = torch.autograd.grad((ref.rgb * w).sum() + ref.alpha.sum(), leaves)
     for a, b in zip(g_fast, g_ref):
         torch.testing.assert_close(a, b, rtol=1e-7, atol=1e-9)
-
-
-def test_windowed_sampling_matches_reference_and_stays_within_the_window():
-    prims, o, d = _scene(density=6.0)
-    leaves = [prims.rgb.requires_grad_(), prims.density.requires_grad_(), prims.centre.requires_grad_()]
-    fast = raymarch(prims, o, d, steps=24, window_boxes=1.0, max_pairs=2 * 6 * 7)  # chunked too
-    ref = raymarch_reference(prims, o, d, steps=24, window_boxes=1.0)
-    torch.testing.assert_close(fast.rgb, ref.rgb, rtol=1e-9, atol=1e-10)
-    g_fast = torch.autograd.grad(fast.rgb.sum() + fast.alpha.sum(), leaves)
-    g_ref = torch.autograd.grad(ref.rgb.sum() + ref.alpha.sum(), leaves)
-    for a, b in zip(g_fast, g_ref):
-        torch.testing.assert_close(a, b, rtol=1e-7, atol=1e-9)
-    hit, t_near, t_far = box_intervals(prims, o, d)
-    window = sample_window(prims, 1.0)  # [B]: one mean box edge
-    torch.testing.assert_close(window, 2.0 * prims.half_extent.detach().amax(-1).mean(-1))
-    t, dt = ray_samples(hit, t_near, t_far, 24, window)
-    t_all, dt_all = ray_samples(hit, t_near, t_far, 24)
-    first = torch.where(hit, t_near, torch.full_like(t_near, 1e9)).amin(-1)
-    assert torch.all(dt * 24 <= window[:, None] + 1e-12)  # no ray is sampled past its window ...
-    assert torch.all(t[..., 0] - 0.5 * dt == torch.where(hit.any(-1), first, 0 * first))  # ... from its first entry
-    cut = dt_all * 24 > window[:, None]
-    assert cut.any() and (~cut & hit.any(-1)).any()
-    torch.testing.assert_close(dt[~cut], dt_all[~cut])  # shorter spans are sampled as before
-    # A window wider than every span changes nothing; none (0) is the whole span.
-    wide = raymarch(prims, o, d, steps=24, window_boxes=1e3)
-    torch.testing.assert_close(wide.rgb, raymarch(prims, o, d, steps=24).rgb, rtol=0, atol=0)
-    assert sample_window(prims, 0.0) is None
 
 
 def test_chunked_rays_match_unchunked():
