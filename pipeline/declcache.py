@@ -23,7 +23,7 @@ from typing import Any
 from pipeline.hashing import hash_bytes
 from pipeline.stage import Stage
 
-_VERSION = 2
+_VERSION = 3
 _MAX_PARAM_ENTRIES = 32
 # Files modified this recently may change again within the same mtime tick with the same size
 # ("racy git"): nothing derived from them is cached until they have settled.
@@ -48,6 +48,7 @@ class StageDecl:
     has_rig: bool
     has_external: bool
     reads_metrics: bool = False
+    run_records: tuple[str, ...] = ()
 
     @property
     def may_read_truth(self) -> bool:
@@ -63,14 +64,15 @@ class StageDecl:
                    extra_outputs=tuple(stage.extra_outputs), reads_truth=stage.reads_truth,
                    evaluates=stage.evaluates, code=tuple(stage.code),
                    has_rig="rig" in stage.params.model_fields, has_external=stage.external_inputs is not None,
-                   reads_metrics=stage.reads_metrics)
+                   reads_metrics=stage.reads_metrics, run_records=tuple(stage.run_records))
 
     def to_json(self) -> dict[str, Any]:
         """JSON form for the cache file."""
         return {"name": self.name, "module": self.module, "inputs": list(self.inputs),
                 "extra_outputs": list(self.extra_outputs), "reads_truth": self.reads_truth,
                 "evaluates": self.evaluates, "code": list(self.code), "has_rig": self.has_rig,
-                "has_external": self.has_external, "reads_metrics": self.reads_metrics}
+                "has_external": self.has_external, "reads_metrics": self.reads_metrics,
+                "run_records": list(self.run_records)}
 
     @classmethod
     def from_json(cls, data: dict[str, Any]) -> "StageDecl":
@@ -78,7 +80,8 @@ class StageDecl:
         return cls(name=data["name"], module=data["module"], inputs=tuple(data["inputs"]),
                    extra_outputs=tuple(data["extra_outputs"]), reads_truth=data["reads_truth"],
                    evaluates=data["evaluates"], code=tuple(data["code"]), has_rig=bool(data["has_rig"]),
-                   has_external=bool(data["has_external"]), reads_metrics=bool(data.get("reads_metrics", False)))
+                   has_external=bool(data["has_external"]), reads_metrics=bool(data.get("reads_metrics", False)),
+                   run_records=tuple(data.get("run_records", ())))
 
 
 def _stat_key(path: str) -> tuple[int, int] | None:

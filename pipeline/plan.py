@@ -2,11 +2,12 @@
 
 A stage's action key is BLAKE3 over the canonical JSON of: its name, its code digest, its
 canonical params, the content keys of its input objects and the digests of its external inputs.
-An input's content key is the digest of its data without the runner's ``metrics.json``
-(``Workspace.content_key``), so an upstream rerun that reproduces the same files with other
-timings leaves the stages below it fresh; a stage that reads its inputs' metrics
-(``Stage.reads_metrics``) is keyed on their full digests. Actions recorded before content keys
-existed (keyed on full digests) are still found (``KeyMaterial.legacy_key``).
+An input's content key is the digest of its data without the runner's ``metrics.json`` and
+the producing stage's run records (``Workspace.content_key``, ``Stage.run_records``), so an
+upstream rerun that reproduces the same files with other timings leaves the stages below it
+fresh; a stage that reads its inputs' metrics (``Stage.reads_metrics``) is keyed on their full
+digests. Actions recorded by earlier versions (keyed on full digests, or on content keys that
+still held the run records) are still found (``KeyMaterial.earlier_keys``).
 """
 
 from __future__ import annotations
@@ -62,7 +63,8 @@ class KeyMaterial:
 
     ``inputs`` are the input objects' digests (where the stage reads them; provenance),
     ``input_keys`` what the key hashes for them: their content keys, or the same digests for a
-    stage that reads its inputs' metrics.
+    stage that reads its inputs' metrics. ``earlier_input_keys``: what earlier versions hashed
+    for the same inputs where it differs (content keys that kept the run records).
     """
 
     stage: str
@@ -71,6 +73,7 @@ class KeyMaterial:
     inputs: dict[str, str]
     external: dict[str, str]
     input_keys: dict[str, str] | None = None
+    earlier_input_keys: tuple[dict[str, str], ...] = ()
 
     def to_json(self) -> dict[str, Any]:
         """The JSON form recorded in the action file."""
@@ -97,23 +100,34 @@ class KeyMaterial:
         """The key of the same action before inputs were keyed by content (their full digests)."""
         return self._hash(self.inputs)
 
+    @property
+    def earlier_keys(self) -> tuple[str, ...]:
+        """Keys earlier versions recorded the same action under (other than ``key``), newest first."""
+        keys = [self._hash(inputs) for inputs in self.earlier_input_keys] + [self.legacy_key]
+        return tuple(k for k in dict.fromkeys(keys) if k != self.key)
+
 
 def key_material(project: Project, ws: Workspace, name: str, params: ResolvedParams,
                  input_digests: dict[str, str]) -> KeyMaterial:
     """Compute the key material of stage ``name`` for given input digests."""
-    keys = None if project.stages[name].reads_metrics else {
-        inp: ws.content_key(digest) for inp, digest in input_digests.items()}
+    keys, earlier = None, ()
+    if not project.stages[name].reads_metrics:
+        keys = {inp: ws.content_key(digest, project.stages[output_name(inp)[0]].run_records)
+                for inp, digest in input_digests.items()}
+        with_records = {inp: ws.content_key(digest) for inp, digest in input_digests.items()}
+        earlier = (with_records,) if with_records != keys else ()
     return KeyMaterial(stage=name, code=project.code_digest(name), params=params.canonical,
-                       inputs=dict(input_digests), external=external_digests(name, params, ws), input_keys=keys)
+                       inputs=dict(input_digests), external=external_digests(name, params, ws), input_keys=keys,
+                       earlier_input_keys=earlier)
 
 
 def find_action(ws: Workspace, material: KeyMaterial) -> tuple[str, dict] | None:
     """The recorded action for ``material`` and the key it is stored under, or None.
 
-    Looks under ``material.key``, then under its legacy key (an action recorded before content
-    keys, on identical input objects, is the same work).
+    Looks under ``material.key``, then under the keys earlier versions used for it
+    (``KeyMaterial.earlier_keys``: on identical input objects, it is the same work).
     """
-    for key in dict.fromkeys((material.key, material.legacy_key)):
+    for key in (material.key, *material.earlier_keys):
         action = ws.read_action(key)
         if action is not None:
             return key, action

@@ -200,7 +200,7 @@ class Runner:
             problem = outputs_problem(self.ws, action.get("outputs", {}))
             if problem is None:
                 if found_key != key:
-                    # Recorded before content keys: file it under the current key too.
+                    # Recorded under an earlier version's key: file it under the current key too.
                     self.ws.write_action(key, {**action, "key": key, "input_keys": material.keyed_inputs})
                 ref = refs.get(name)
                 if ref is not None and ref.action in (key, found_key) and ref.outputs == action["outputs"]:

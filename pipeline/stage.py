@@ -131,9 +131,15 @@ class Stage:
         external_inputs: maps params to files/folders outside the workspace that the stage reads
             (e.g. an imported capture folder); their content digest counts toward staleness.
         evaluates: for an evaluation stage, the stage whose metrics it completes in ``pipeline show``.
-        reads_metrics: reads its inputs' ``metrics.json`` (e.g. the report). Such a stage is keyed on
-            its inputs' full digests; every other stage only on their data (``Workspace.content_key``),
-            so a rerun upstream that changes nothing but its timings does not make it stale.
+        reads_metrics: reads its inputs' ``metrics.json`` and run records (e.g. the report). Such a
+            stage is keyed on its inputs' full digests; every other stage only on their data
+            (``Workspace.content_key``), so a rerun upstream that changes nothing but its timings
+            does not make it stale.
+        run_records: patterns (``fnmatch``, relative to an output folder, ``*`` crossing folders) of
+            the output files that record how the run went rather than what it made: wall-clock
+            learning curves, TensorBoard event files. Like ``metrics.json`` they are left out of the
+            content key, so only stages with ``reads_metrics`` see them change; no other stage may
+            read them.
     """
 
     name: str
@@ -146,6 +152,7 @@ class Stage:
     external_inputs: Callable[[StageParams], Iterable[Path]] | None = None
     evaluates: str | None = None
     reads_metrics: bool = False
+    run_records: tuple[str, ...] = ()
     doc: str = field(default="")
 
     @property

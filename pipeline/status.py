@@ -72,7 +72,7 @@ def assess(project: Project, ws: Workspace, params: dict[str, ResolvedParams], n
                 found = find_action(ws, material)
                 status.cached = found is not None and outputs_problem(ws, found[1].get("outputs", {})) is None
                 if ref is not None:
-                    if ref.action in (material.key, material.legacy_key):
+                    if ref.action in (material.key, *material.earlier_keys):
                         problem = outputs_problem(ws, ref.outputs, verify=verify)
                         if problem:
                             reasons.append(problem)

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import errno
 import fcntl
+import fnmatch
 import json
 import os
 import shutil
@@ -41,6 +42,12 @@ ENV_WORKSPACES = "PIPELINE_WORKSPACES"
 #: The file the runner writes into every output beside the stage's own files: the stage's
 #: figures, wall-clock timings included, so it differs between two runs of identical work.
 RUNNER_METRICS_FILE = "metrics.json"
+
+
+def is_run_record(relpath: str, patterns: tuple[str, ...] = ()) -> bool:
+    """Whether an object's file ``relpath`` records the run rather than its data: the runner's
+    ``metrics.json`` or a match of one of the stage's ``run_records`` patterns."""
+    return relpath == RUNNER_METRICS_FILE or any(fnmatch.fnmatchcase(relpath, pat) for pat in patterns)
 
 
 def workspace_root(project_root: Path, override: str | Path | None = None) -> Path:
@@ -311,26 +318,29 @@ class Workspace:
         """The stored manifest of an object."""
         return parse_manifest(self._manifest_path(digest).read_text(encoding="utf-8"))
 
-    def content_key(self, digest: str) -> str:
-        """The digest of an object's data: its manifest without the runner's ``metrics.json``.
+    def content_key(self, digest: str, run_records: tuple[str, ...] = ()) -> str:
+        """The digest of an object's data: its manifest without the runner's ``metrics.json``
+        and without the files matching ``run_records`` (the producing stage's ``Stage.run_records``).
 
         Two runs of a stage that produce the same files differ in their timings, hence in
-        ``metrics.json`` and in the object digest; keying downstream actions on this instead
-        lets a rerun whose data come out identical stop there (early cutoff) rather than
-        rebuild everything below it. An object without ``metrics.json`` keys as its own digest,
-        and so does one whose manifest is missing or unreadable (the caller reports it).
-        Objects are immutable, so the keys are kept for the life of this ``Workspace``.
+        ``metrics.json`` (and in any wall-clock record) and in the object digest; keying
+        downstream actions on this instead lets a rerun whose data come out identical stop
+        there (early cutoff) rather than rebuild everything below it. An object with none of
+        those files keys as its own digest, and so does one whose manifest is missing or
+        unreadable (the caller reports it). Objects are immutable, so the keys are kept for the
+        life of this ``Workspace``.
         """
-        cached = self._content_keys.get(digest)
+        cache_key = digest if not run_records else f"{digest}|{'|'.join(run_records)}"
+        cached = self._content_keys.get(cache_key)
         if cached is not None:
             return cached
         try:
             entries = self.manifest(digest)
         except (OSError, ValueError):
             return digest
-        data = [e for e in entries if e.relpath != RUNNER_METRICS_FILE]
+        data = [e for e in entries if not is_run_record(e.relpath, run_records)]
         key = digest if len(data) == len(entries) else manifest_digest(data)
-        self._content_keys[digest] = key
+        self._content_keys[cache_key] = key
         return key
 
     # -- actions and refs ---------------------------------------------------------------

@@ -14,6 +14,10 @@ Output:
     previews/<split>_<k>.png         ground truth | ours | TRAvatar*, sRGB
     tensorboard/                     loss terms and held-out PSNR
     metrics.json                     see METRICS.md (train)
+
+The learning curves and TensorBoard files hold wall-clock times: they are the stage's run
+records (``Stage.run_records``), left out of the key relight and evaluate see, so a rerun
+that trains the same models leaves them fresh.
 """
 
 from __future__ import annotations
@@ -518,4 +522,7 @@ def _write_previews(folder: Path, t: TrainTensors, pairs: dict, renders: dict, c
 
 
 STAGE = Stage(name="train", inputs=("capture", "stabilize", "track", "matte", "lightcal"), params=TrainParams,
-              run=run, code=("avatar",), doc=__doc__ or "")
+              run=run, code=("avatar",), doc=__doc__ or "",
+              # Wall-clock records: two runs of the same deterministic training differ only here (and in
+              # metrics.json), so relight and evaluate, which read the models, need not rerun.
+              run_records=("curve.json", "learning_curve.png", "tensorboard/*", "tradeoffs/learning_curve.json"))

@@ -65,9 +65,9 @@ def test_comment_only_edit_reruns_nothing_code_edit_does(toy: ToyProject) -> Non
 
 
 def test_rerun_with_identical_data_stops_there_whatever_its_timings(toy: ToyProject) -> None:
-    """A forced source reruns with the same numbers but another ``source_seconds``: its object
-    digest changes, its data do not. Stages keyed on data stay fresh; ``side``, which reads the
-    source's metrics, reruns."""
+    """A forced source reruns with the same numbers but another ``source_seconds`` and another
+    timing in its run record ``log/run.txt``: its object digest changes, its data do not. Stages
+    keyed on data stay fresh; ``side``, which reads the source's metrics, reruns."""
     toy.cli("run", "-S", "alice")
     before = json.loads((toy.ws() / "refs" / "source.json").read_text())["outputs"]["out"]
     forced = toy.cli("run", "-S", "alice", "--force", "source")
@@ -106,6 +106,36 @@ def test_actions_recorded_before_content_keys_are_still_found(toy: ToyProject) -
         ref = json.loads((ws / "refs" / f"{stage}.json").read_text())
         assert (ws / "actions" / f"{ref['action']}.json").is_file()
         assert json.loads((ws / "actions" / f"{ref['action']}.json").read_text())["key"] == ref["action"]
+
+
+def test_actions_keyed_on_content_with_run_records_are_still_found(toy: ToyProject) -> None:
+    """A workspace written when content keys still held the producing stage's run records stays
+    fresh after the upgrade: nothing reruns, and the refs move to the new keys."""
+    from pipeline.hashing import hash_bytes
+    from pipeline.workspace import Workspace
+
+    toy.cli("run", "-S", "alice")
+    ws_dir = toy.ws()
+    ws = Workspace(ws_dir.parent, "alice")
+    for stage in ("double", "source_eval"):
+        ref_file = ws_dir / "refs" / f"{stage}.json"
+        ref = json.loads(ref_file.read_text())
+        record = json.loads((ws_dir / "actions" / f"{ref['action']}.json").read_text())
+        with_records = {inp: ws.content_key(digest) for inp, digest in record["inputs"].items()}
+        body = {k: record[k] for k in ("stage", "code", "params", "external")}
+        old_key = hash_bytes(json.dumps({**body, "inputs": with_records}, sort_keys=True,
+                                        separators=(",", ":")).encode())
+        if stage == "double":  # its input holds log/run.txt: the old key differs
+            assert old_key != ref["action"]
+        (ws_dir / "actions" / f"{ref['action']}.json").unlink()
+        (ws_dir / "actions" / f"{old_key}.json").write_text(json.dumps({**record, "key": old_key,
+                                                                        "input_keys": with_records}))
+        ref_file.write_text(json.dumps({**ref, "action": old_key}))
+    status = toy.cli("status", "-S", "alice").stdout
+    assert all(" fresh" in line for line in status.splitlines()), status
+    assert toy.cli("run", "-S", "alice").ran == set()
+    ref = json.loads((ws_dir / "refs" / "double.json").read_text())
+    assert json.loads((ws_dir / "actions" / f"{ref['action']}.json").read_text())["key"] == ref["action"]
 
 
 def test_selection_options_select_exactly(toy: ToyProject) -> None:

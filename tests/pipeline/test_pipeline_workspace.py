@@ -10,7 +10,7 @@ import pytest
 
 from pipeline.errors import InputError, WorkspaceLocked
 from pipeline.hashing import StatCache, hash_tree, safe_join
-from pipeline.workspace import Workspace, is_read_only
+from pipeline.workspace import Workspace, is_read_only, is_run_record
 
 
 def _tree(root: Path) -> Path:
@@ -181,3 +181,25 @@ def test_content_key_leaves_out_the_runner_metrics_only(tmp_path: Path) -> None:
     assert first != second and ws.content_key(first) == ws.content_key(second) != first
     assert ws.content_key(commit('{"seconds": 1.0}', data="z")) != ws.content_key(first)
     assert ws.content_key("0" * 64) == "0" * 64  # no manifest: the digest itself
+
+
+def test_content_key_leaves_out_the_stages_run_records(tmp_path: Path) -> None:
+    ws = Workspace(tmp_path / "ws", "alice")
+    ws.ensure()
+
+    def commit(curve: str, data: str = "y") -> str:
+        folder = ws.new_temp_dir("t")
+        _tree(folder)
+        (folder / "y.txt").write_text(data)
+        (folder / "tb").mkdir()
+        (folder / "tb" / f"events.{curve}").write_text(curve)
+        (folder / "curve.json").write_text(curve)
+        return ws.commit(folder)
+
+    records = ("curve.json", "tb/*")
+    first, second = commit("1.0"), commit("2.0")
+    assert ws.content_key(first) != ws.content_key(second)  # the records are data unless declared
+    assert ws.content_key(first, records) == ws.content_key(second, records)
+    assert ws.content_key(commit("1.0", data="z"), records) != ws.content_key(first, records)
+    assert ws.content_key(first, ("curve.json",)) != ws.content_key(second, ("curve.json",))  # tb/ still differs
+    assert is_run_record("metrics.json") and is_run_record("tb/a/b", ("tb/*",)) and not is_run_record("y.txt", records)
