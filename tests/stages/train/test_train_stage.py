@@ -71,6 +71,27 @@ def test_stage_outputs_metrics_table_and_models(capture, tmp_path):
     assert meta["kind"] == "travatar" and set(meta["held_out_bars"]).isdisjoint(meta["basis_bars"])
 
 
+def test_rerun_differs_only_in_its_declared_run_records(capture, tmp_path):
+    """Two runs of the same training write the same files but for ``metrics.json`` and the
+    stage's run records, so the content key downstream stages see is the same."""
+    import hashlib
+
+    from pipeline.workspace import is_run_record
+
+    params = {**BASE, "iterations": 8, "baseline_iterations": 6}
+    outs = [run_stage_for_test(STAGE, tmp_path / f"run{i}", capture, params) for i in range(2)]
+
+    def data_files(folder: Path) -> dict[str, str]:
+        return {rel: hashlib.sha256(f.read_bytes()).hexdigest() for f in sorted(folder.rglob("*"))
+                if f.is_file() and not is_run_record(rel := f.relative_to(folder).as_posix(), STAGE.run_records)}
+
+    first, second = (data_files(out) for out in outs)
+    assert "models/ours/model.safetensors" in first and "table.md" in first
+    assert first == second
+    # The records themselves do change between runs (wall-clock times), or declaring them would be moot.
+    assert (outs[0] / "curve.json").read_bytes() != (outs[1] / "curve.json").read_bytes()
+
+
 def test_resume_after_kill_continues_the_same_run(capture, tmp_path, monkeypatch, caplog):
     params = {**BASE, "iterations": 10, "baseline": False, "lpips": False, "curve_every": 0}
     whole = run_stage_for_test(STAGE, tmp_path / "a", capture, params)
