@@ -80,3 +80,12 @@ def test_report_is_written(workspaces: Path) -> None:
     page = Path(json.loads(shown.stdout)["path"]) / "report.html"
     text = page.read_text()
     assert 'id="paper-table"' in text and 'id="targets-table"' in text
+
+
+def test_retraining_the_same_models_leaves_relight_and_evaluate_fresh(workspaces: Path) -> None:
+    """A forced train writes the same models with new wall-clock curves (its run records): only
+    the report, which shows the curves and timings, runs after it."""
+    forced = _pipeline("run", "-S", "ci", "--force", "train", workspaces=workspaces)
+    assert forced.returncode == 0, forced.stderr
+    ran = {line.split()[1] for line in forced.stdout.splitlines() if line.startswith("ran ")}
+    assert ran == {"train", "report"}, forced.stdout
