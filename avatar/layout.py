@@ -22,9 +22,10 @@ the crown needs another parametrisation (a grid whose pole is not on the head), 
 
 The ``azimuthal`` projection is such a grid, and it does not pay either: centred at 20 degrees
 of elevation, +-105 degrees wide, from -75 up to 100 degrees along the front meridian (over the
-crown), bob's seed 0 lost about 3 dB on every split and on the training images, for both
-models (ours 21.64 / 23.07 / 21.90 / 25.20 dB against 24.59 / 24.67 / 25.19 / 27.30 with
-``latlong``; ``SEEDS_TAG=az``, stopped after that seed). Its corners wrap round to the back
+crown), bob's seed 0 lost 1.6 to 3.3 dB on every split and on the training images, 1.2 to
+3.0 dB for TRAvatar* (ours: novel light / performance / both / training images 21.64 / 23.07 /
+21.90 / 25.20 dB against 24.59 / 24.67 / 25.19 / 27.30 with ``latlong``; ``SEEDS_TAG=az``,
+stopped after that seed). Its corners wrap round to the back
 of the head, and a ray is sampled evenly over its whole span through the boxes
 (``avatar.raymarch``): the boxes behind the ears lengthen the rays' spans and thin their
 samples where the face is (bob, frame 0, all cameras, the models' initial boxes: foreground
