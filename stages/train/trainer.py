@@ -201,8 +201,9 @@ class _BatchLoss(nn.Module):
         self.model = trainer.model  # the parameters DDP synchronises
         # A weak reference: the trainer owns the DDP wrapper, so a strong one back would make a
         # cycle that keeps DDP (and through it the process group) alive past
-        # destroy_process_group until a garbage collection or interpreter exit, where gloo's
-        # teardown aborted a rank in CI ("terminate called without an active exception").
+        # destroy_process_group, until a garbage collection or interpreter exit tears gloo down
+        # in no particular order (a rank of the two-process test once aborted at exit in CI:
+        # "terminate called without an active exception").
         self._losses = weakref.WeakMethod(trainer.losses)
 
     def forward(self, frames: torch.Tensor, cams: torch.Tensor, pix: torch.Tensor,
