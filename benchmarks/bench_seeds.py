@@ -14,7 +14,9 @@ key by key, e.g. ``'{"capacity_rule": {"latent_per_mode": 0}}'`` to train both m
 avatar section's latent size instead of the rule's) and ``SEEDS_TAG`` (a name for that
 variant). Writes ``bench-results/seeds_<subject>.json`` (``seeds_<subject>_<tag>.json`` with a
 tag); a later run with the same settings reuses the seeds that file already holds and trains
-only the new ones. PSNR only (no LPIPS). About 10 minutes
+only the new ones. A tagged run also compares itself with the untagged file's runs of the same
+seeds, data and iterations where there are any: variant - default per model and split, paired
+by seed, with the same 95% interval (``against_default`` in its results). PSNR only (no LPIPS). About 10 minutes
 a seed on a 2-core CPU at the preset's 2500 iterations (both models; measured with another
 subject's seeds running beside it).
 """
@@ -34,19 +36,39 @@ SPLITS = ("novel_light", "novel_perf", "novel_both", "train")
 MODELS = ("ours", "travatar")
 
 
-def paired_summary(ours: list[float], baseline: list[float]) -> dict:
-    """Mean and sample std of each list, and the paired difference ours - baseline with its 95% interval."""
+def paired_difference(a: list[float], b: list[float], names: tuple[str, str] = ("ours", "TRAvatar*")) -> dict:
+    """The paired difference a - b: its mean, 95% interval (Student's t) and verdict.
+
+    The verdict names the side ahead (``names``) only when the interval excludes 0.
+    """
     from scipy.stats import t as student_t
 
-    a, b = np.asarray(ours, float), np.asarray(baseline, float)
-    diff = a - b
+    diff = np.asarray(a, float) - np.asarray(b, float)
     n = len(diff)
     half = float(student_t.ppf(0.975, n - 1) * diff.std(ddof=1) / np.sqrt(n)) if n > 1 else float("inf")
     lo, hi = float(diff.mean()) - half, float(diff.mean()) + half
-    verdict = "ours ahead" if lo > 0 else "TRAvatar* ahead" if hi < 0 else "not resolved"
+    verdict = f"{names[0]} ahead" if lo > 0 else f"{names[1]} ahead" if hi < 0 else "not resolved"
+    return {"diff_mean": float(diff.mean()), "diff_ci95": [lo, hi], "verdict": verdict}
+
+
+def paired_summary(ours: list[float], baseline: list[float]) -> dict:
+    """Mean and sample std of each list, and the paired difference ours - baseline with its 95% interval."""
+    a, b = np.asarray(ours, float), np.asarray(baseline, float)
+    n = len(a)
     std = (lambda x: float(x.std(ddof=1)) if n > 1 else float("nan"))
     return {"ours_mean": float(a.mean()), "ours_std": std(a), "travatar_mean": float(b.mean()),
-            "travatar_std": std(b), "diff_mean": float(diff.mean()), "diff_ci95": [lo, hi], "verdict": verdict}
+            "travatar_std": std(b), **paired_difference(ours, baseline)}
+
+
+def against_default(runs: dict[int, dict], default: dict[int, dict], seeds: list[int]) -> dict:
+    """Variant - default per ``<model>_<split>`` over the ``seeds`` both hold (paired by seed); {} if none."""
+    shared = [x for x in seeds if x in runs and x in default]
+    if not shared:
+        return {}
+    return {"seeds": shared, **{f"{m}_{s}": paired_difference([runs[x][f"{m}_{s}"] for x in shared],
+                                                           [default[x][f"{m}_{s}"] for x in shared],
+                                                           ("variant", "default"))
+                                for m in MODELS for s in SPLITS}}
 
 
 def merge_params(base: dict, overrides: dict) -> dict:
@@ -104,9 +126,29 @@ def main() -> dict:
               f"{r['diff_mean']:+6.2f} [{r['diff_ci95'][0]:+.2f}, {r['diff_ci95'][1]:+.2f}]{'':>8}  {r['verdict']}")
     results = {"subject": subject, "source": source, "iterations": iterations, "seeds": seeds, "params": base,
                "runs": {str(k): v for k, v in sorted(runs.items())}, "summary": summary}
+    if tag:
+        compared = against_default(runs, _default_runs(out / f"seeds_{subject}.json", source, iterations), seeds)
+        if compared:
+            print(f"{tag} - default, paired over seeds {compared['seeds']} (95% CI):")
+            for m in MODELS:
+                print(f"  {'ours' if m == 'ours' else 'TRAvatar*':<9} " + ", ".join(
+                    f"{s} {compared[f'{m}_{s}']['diff_mean']:+.2f} [{compared[f'{m}_{s}']['diff_ci95'][0]:+.2f}, "
+                    f"{compared[f'{m}_{s}']['diff_ci95'][1]:+.2f}]" for s in SPLITS))
+            results["against_default"] = compared
     out.mkdir(exist_ok=True)
     path.write_text(json.dumps(results, indent=1))
     return results
+
+
+def _default_runs(path: Path, source: str, iterations: int) -> dict[int, dict]:
+    """Per-seed figures of the untagged run on the same data and iterations, else none."""
+    try:
+        default = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return {}
+    if default.get("source") != source or default.get("iterations") != iterations:
+        return {}
+    return {int(k): v for k, v in default.get("runs", {}).items()}
 
 
 def _earlier_runs(path: Path, params: dict, source: str) -> dict[int, dict]:

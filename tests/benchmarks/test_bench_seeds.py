@@ -49,3 +49,26 @@ def test_overrides_merge_into_nested_sections_and_bad_ones_are_named(monkeypatch
     monkeypatch.setenv("SEEDS_SET", "[1, 2]")
     with pytest.raises(SystemExit, match="JSON object"):
         _overrides()
+
+
+def test_a_variant_is_compared_with_the_default_on_the_seeds_both_hold(tmp_path):
+    import json
+
+    from benchmarks.bench_seeds import MODELS, SPLITS, _default_runs, against_default
+
+    def run(offset: float) -> dict:
+        return {f"{m}_{s}": 24.0 + offset for m in MODELS for s in SPLITS}
+
+    default = {0: run(0.0), 1: run(0.5), 2: run(1.0)}
+    variant = {0: run(-1.0), 2: run(0.1), 5: run(3.0)}
+    compared = against_default(variant, default, [0, 2, 5])
+    assert compared["seeds"] == [0, 2]  # seed 5 has no default to pair with
+    assert compared["ours_novel_perf"]["diff_mean"] == pytest.approx(-0.95)  # (-1.0 - 0.9) / 2
+    assert compared["travatar_train"]["verdict"] == "default ahead"  # differences -1.0 and -0.9
+    assert against_default(variant, default, [5]) == {}
+    path = tmp_path / "seeds_bob.json"
+    path.write_text(json.dumps({"source": "workspace bob", "iterations": 2500, "runs": {"0": run(0.0)}}))
+    assert _default_runs(path, "workspace bob", 2500) == {0: run(0.0)}
+    assert _default_runs(path, "workspace bob", 300) == {}  # other iterations: not comparable
+    assert _default_runs(path, "synthetic capture", 2500) == {}
+    assert _default_runs(tmp_path / "none.json", "workspace bob", 2500) == {}
