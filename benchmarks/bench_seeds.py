@@ -140,15 +140,20 @@ def main() -> dict:
     return results
 
 
-def _default_runs(path: Path, source: str, iterations: int) -> dict[int, dict]:
-    """Per-seed figures of the untagged run on the same data and iterations, else none."""
+def _runs_matching(path: Path, **expected: object) -> dict[int, dict]:
+    """Per-seed figures of the results file ``path`` if its fields equal ``expected``, else none."""
     try:
-        default = json.loads(path.read_text())
+        results = json.loads(path.read_text())
     except (OSError, ValueError):
         return {}
-    if default.get("source") != source or default.get("iterations") != iterations:
+    if any(results.get(key) != value for key, value in expected.items()):
         return {}
-    return {int(k): v for k, v in default.get("runs", {}).items()}
+    return {int(k): v for k, v in results.get("runs", {}).items()}
+
+
+def _default_runs(path: Path, source: str, iterations: int) -> dict[int, dict]:
+    """Per-seed figures of the untagged run on the same data and iterations, else none."""
+    return _runs_matching(path, source=source, iterations=iterations)
 
 
 def _earlier_runs(path: Path, params: dict, source: str) -> dict[int, dict]:
@@ -158,13 +163,7 @@ def _earlier_runs(path: Path, params: dict, source: str) -> dict[int, dict]:
     trains only the new ones. The data is identified by its source only: rerun from scratch
     (delete the file) after re-running the subject's upstream stages.
     """
-    try:
-        earlier = json.loads(path.read_text())
-    except (OSError, ValueError):
-        return {}
-    if earlier.get("params") != params or earlier.get("source") != source:
-        return {}
-    return {int(k): v for k, v in earlier.get("runs", {}).items()}
+    return _runs_matching(path, params=params, source=source)
 
 
 if __name__ == "__main__":
