@@ -48,11 +48,13 @@ which lies past where the ray turns opaque: on bob (ours, seed 0, N=16, M=2, 16 
 frames x 10 cameras) foreground rays cross 9.8 cm of boxes at the median and are opaque after
 3.3 cm (31% of the span; 62% at the 90th percentile), about one mean box edge (3.0 cm). Yet
 neither more samples nor samples moved forward paid on bob (both models, 2500 iterations,
-against the same seeds at the rule's 16 steps; ``benchmarks/bench_seeds.py``): 32 steps moved
-ours by +0.3 to +0.4 dB on seed 0 and -0.6 to -0.8 dB on seed 2 (novel light, performance,
-both, training images), and sampling only the first two mean box edges past a ray's entry
-(16 steps there) lost 0.3 to 1.4 dB on both seeds for both models, the training images
-included. So the rule keeps its 16.
+against the same seeds at the rule's 16 steps; ``benchmarks/bench_seeds.py``). 32 steps, over
+seeds 0-4 (``SEEDS_TAG=steps32 SEEDS_SET='{"capacity_rule": {"min_steps": 32}}'``), move ours
+by -0.18 / +0.01 / -0.02 / -0.14 dB (novel light / performance / both / training images, no
+interval excluding 0) and TRAvatar* by +0.30 / +0.28 / +0.32 / +0.28 (novel performance
+resolved, [+0.03, +0.53]), at about 12% more time per seed; and sampling only the first two
+mean box edges past a ray's entry (16 steps there) lost 0.3 to 1.4 dB on seeds 0 and 2 for
+both models, the training images included. So the rule keeps its 16.
 
 ``choose_capacity`` is pure (numbers in, an ``AvatarConfig`` out); ``footprint_from_mattes``
 measures the footprint from the training mattes; ``find_knee`` locates the knee of a measured
