@@ -52,7 +52,8 @@ against the same seeds at the rule's 16 steps; ``benchmarks/bench_seeds.py``). 3
 seeds 0-4 (``SEEDS_TAG=steps32 SEEDS_SET='{"capacity_rule": {"min_steps": 32}}'``), move ours
 by -0.18 / +0.01 / -0.02 / -0.14 dB (novel light / performance / both / training images, no
 interval excluding 0) and TRAvatar* by +0.30 / +0.28 / +0.32 / +0.28 (novel performance
-resolved, [+0.03, +0.53]), at about 12% more time per seed; and sampling only the first two
+resolved, [+0.03, +0.53]), at 7.9 min a seed for both models run alone (about 7 at 16
+steps in earlier runs on the same CPU); and sampling only the first two
 mean box edges past a ray's entry (16 steps there) lost 0.3 to 1.4 dB on seeds 0 and 2 for
 both models, the training images included. So the rule keeps its 16.
 
