@@ -74,16 +74,15 @@ def test_stage_outputs_metrics_table_and_models(capture, tmp_path):
 def test_rerun_differs_only_in_its_declared_run_records(capture, tmp_path):
     """Two runs of the same training write the same files but for ``metrics.json`` and the
     stage's run records, so the content key downstream stages see is the same."""
-    import hashlib
-
+    from pipeline.hashing import hash_tree
     from pipeline.workspace import is_run_record
 
     params = {**BASE, "iterations": 8, "baseline_iterations": 6}
     outs = [run_stage_for_test(STAGE, tmp_path / f"run{i}", capture, params) for i in range(2)]
 
     def data_files(folder: Path) -> dict[str, str]:
-        return {rel: hashlib.sha256(f.read_bytes()).hexdigest() for f in sorted(folder.rglob("*"))
-                if f.is_file() and not is_run_record(rel := f.relative_to(folder).as_posix(), STAGE.run_records)}
+        """The manifest the workspace would store, without what the content key leaves out."""
+        return {e.relpath: e.digest for e in hash_tree(folder)[1] if not is_run_record(e.relpath, STAGE.run_records)}
 
     first, second = (data_files(out) for out in outs)
     assert "models/ours/model.safetensors" in first and "table.md" in first
