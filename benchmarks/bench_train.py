@@ -1,8 +1,9 @@
 """Training speed and memory of the relightable MVP head, tiny and paper configurations.
 
 Figures: training iterations per second and peak memory (tiny preset's batch, and the
-paper's configuration: on a GPU at batch 12, on a CPU a few iterations at batch 1), and the
-time to render one image. The data are the rig's cameras around the ICT head with random
+paper's configuration: on a GPU at batch 12, on a CPU a few iterations at batch 1), the
+time to render one image, and on a CPU ours and TRAvatar* trained side by side against one
+after another (``train.parallel_models``). The data are the rig's cameras around the ICT head with random
 targets: speed does not depend on image content. Writes ``bench-results/train.json``.
 Timings on a shared CPU are noisy.
 """
@@ -95,6 +96,54 @@ def _measure(config: AvatarConfig, width_px: int, batch: int, rays: int, iterati
     return out
 
 
+def _side_by_side(config: AvatarConfig, width_px: int, batch: int, rays: int, iterations: int) -> dict:
+    """Ours and TRAvatar* trained one after another, then side by side (``train.parallel_models: 2``).
+
+    Model iterations per second of each way, the speed-up, and whether both ways end with the
+    same parameters (they must: each model has its own generator and optimiser).
+    """
+    import tempfile
+
+    from avatar.travatar import LightBasis
+    from stages.train.side_by_side import train_models
+
+    t, verts, tris = _tensors(width_px, 3, torch.device("cpu"))
+    lights = np.array([[0.5, 0.3, 1.0], [-0.5, 0.3, 1.0], [0.0, -0.4, 1.0]], np.float32)
+    t.light_pos, t.bar = torch.as_tensor(lights), torch.arange(3)
+    layout = layout_for(config, verts, tris)
+    t.guide_vertices = torch.as_tensor(verts[layout.guide_vertex_ids])[None].expand(3, -1, -1).contiguous()
+    basis = LightBasis(lights / np.linalg.norm(lights, axis=1, keepdims=True))
+
+    class _Quiet:
+        def advance(self, n: int = 1, **fields: object) -> None:
+            pass
+
+    def run(parallel: int, folder: Path) -> tuple[float, list[torch.Tensor]]:
+        trainers = {}
+        for kind in ("ours", "travatar"):
+            torch.manual_seed(0)
+            model = RelightableMVP(config.model_copy(update={"light_basis": 3 if kind == "travatar" else 0}),
+                                   layout, num_bars=3)
+            renderer = Renderer(model, kind, basis if kind == "travatar" else None, [0, 1, 2])
+            trainers[kind] = ModelTrainer(renderer, t, np.arange(3), iterations=iterations, batch_size=batch,
+                                          rays_per_image=rays, lr=1e-4, weights=LossWeights(), seed=0,
+                                          ckpt_path=folder / f"{kind}.pt", checkpoint_every=10 ** 9,
+                                          spike_factor=1e9, log=logging.getLogger("bench"))
+        start = time.perf_counter()
+        train_models(trainers, _Quiet(), parallel)
+        seconds = time.perf_counter() - start
+        return seconds, [p.detach().clone() for tr in trainers.values() for p in tr.model.parameters()]
+
+    with tempfile.TemporaryDirectory(prefix="bench-side-by-side-") as tmp:
+        (Path(tmp) / "a").mkdir()
+        (Path(tmp) / "b").mkdir()
+        one_s, one_params = run(1, Path(tmp) / "a")
+        two_s, two_params = run(2, Path(tmp) / "b")
+    return {"iterations_per_model": iterations, "one_after_another_model_it_per_s": 2 * iterations / one_s,
+            "side_by_side_model_it_per_s": 2 * iterations / two_s, "speedup": one_s / two_s,
+            "same_parameters": all(torch.equal(a, b) for a, b in zip(one_params, two_params))}
+
+
 def main() -> dict:
     cuda = torch.cuda.is_available()
     device = torch.device("cuda" if cuda else "cpu")
@@ -114,6 +163,13 @@ def main() -> dict:
           f"{tiny['render_width_px']}x{tiny['render_height_px']} px): "
           f"{tiny['iterations_per_second']:.2f} it/s, peak {tiny['peak_memory_mb']:.0f} MB, "
           f"render {tiny['render_seconds_per_image'] * 1000:.0f} ms/image")
+    if not cuda:
+        both = _side_by_side(AvatarConfig.tiny(), 64, batch, rays, iterations=60)
+        results["tiny_side_by_side"] = both
+        print(f"tiny, ours and TRAvatar* ({both['iterations_per_model']} iterations each): "
+              f"{both['one_after_another_model_it_per_s']:.2f} model-it/s one after another, "
+              f"{both['side_by_side_model_it_per_s']:.2f} side by side (x{both['speedup']:.2f}), "
+              f"same parameters: {both['same_parameters']}")
     if cuda:
         paper = _measure(AvatarConfig.paper(), 768, batch=12, rays=4096, iterations=10, device=device)
         note = "GPU, batch 12 (the paper: ~1.2 it/s on an A6000)"

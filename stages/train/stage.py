@@ -48,6 +48,7 @@ from stages.train.data import TrainData, load_train_data
 from stages.train.evaluate import (SCALED_SPLITS, coverage_metrics, curve_png, eval_pairs, image_metrics,
                                    results_table)
 from stages.train.splits import SPLITS, Splits, make_splits, nearest_training_distance_mm
+from stages.train.side_by_side import train_models
 from stages.train.trainer import LossWeights, ModelTrainer, PruneSchedule, Renderer, TrainTensors
 
 
@@ -106,6 +107,10 @@ class TrainParams(StageParams):
     threads: int = Field(0, ge=0, description="torch CPU threads (0 = torch's default).")
     device: str = Field("auto", description="'auto' (CUDA if present), 'cpu' or 'cuda'.")
     previews: int = Field(2, ge=0, description="Preview images written per split.")
+    parallel_models: int = Field(1, ge=1, description="Models (ours, TRAvatar*) trained at the same time, each in its "
+                                 "own thread of this process: 2 trains both side by side, in about the time of one "
+                                 "on a CPU with threads: 1 (stages.train.side_by_side); the same numbers as 1, which "
+                                 "trains them one after another. Needs processes: 1.")
     processes: int = Field(1, ge=1, description="Data-parallel training processes (torch.distributed DDP, launched "
                            "with torchrun; gloo on CPU, nccl with one GPU per process). batch_size is the global "
                            "batch and must divide by it; 1 = train in the stage's own process.")
@@ -123,7 +128,8 @@ def _run_key(params: TrainParams, inputs: dict[str, Path]) -> str:
     """Checkpoint folder key: params, input objects and the training code (so stale checkpoints are never resumed)."""
     # The process count is left out: every rank draws the same global batch, so a checkpoint
     # resumes with any number of processes.
-    h = hashlib.sha256(params.model_dump_json(exclude={"processes"}).encode())
+    # Nor does training side by side change a model's iterations.
+    h = hashlib.sha256(params.model_dump_json(exclude={"processes", "parallel_models"}).encode())
     for name in sorted(inputs):
         h.update(f"{name}={Path(inputs[name]).resolve()}".encode())
     root = Path(__file__).resolve().parents[2]
@@ -176,6 +182,9 @@ def run(ctx: StageContext) -> None:
     if params.batch_size % params.processes:
         raise ConfigError(f"train.batch_size={params.batch_size} does not divide by train.processes="
                           f"{params.processes}; every process takes an equal share of the global batch")
+    if params.processes > 1 and params.parallel_models > 1:
+        raise ConfigError(f"train.parallel_models={params.parallel_models} with train.processes={params.processes}: "
+                          "a DDP run trains its models one after another; set train.parallel_models: 1")
     if params.processes > 1:
         from stages.train.launch import launch_ddp
 
@@ -244,11 +253,12 @@ def train(ctx: StageContext, rank: int = 0, world_size: int = 1, device: torch.d
     weights = LossWeights(params.pho_weight, params.geo_weight, params.vol_weight, params.kld_weight, params.mat_weight)
     kinds = ["ours"] + (["travatar"] if params.baseline else [])
     curves, renders, metrics = {}, {}, ctx.metrics
+    renderers, trainers = {}, {}
     for kind in kinds:
         config = avatar if kind == "ours" else avatar.model_copy(update={"light_basis": len(basis_bars)})
         torch.manual_seed(params.seed)
         model = RelightableMVP(config, layout, data.num_bars).to(device)
-        renderer = Renderer(model, kind, basis if kind == "travatar" else None, basis_bars)
+        renderer = renderers[kind] = Renderer(model, kind, basis if kind == "travatar" else None, basis_bars)
 
         def curve_fn(renderer: Renderer = renderer) -> float:
             if not curve_pairs:
@@ -257,18 +267,28 @@ def train(ctx: StageContext, rank: int = 0, world_size: int = 1, device: torch.d
             return image_metrics(pred, _targets(tensors, curve_pairs), scale=True)["psnr"]
 
         iterations = params.iterations if kind == "ours" else (params.baseline_iterations or params.iterations)
-        trainer = ModelTrainer(renderer, tensors, fitted_frames, iterations=iterations, batch_size=params.batch_size,
-                               rays_per_image=params.rays_per_image, lr=params.lr, weights=weights,
-                               seed=params.seed, ckpt_path=ckpt_dir / f"{kind}.pt",
-                               checkpoint_every=params.checkpoint_every, spike_factor=params.spike_factor,
-                               log=ctx.log, curve_every=params.curve_every, curve_fn=curve_fn if lead else None,
-                               writer=writer, lr_decay_to=params.lr_decay_to, rank=rank, world_size=world_size,
-                               prune=_prune_schedule(params, iterations))
+        trainers[kind] = ModelTrainer(
+            renderer, tensors, fitted_frames, iterations=iterations, batch_size=params.batch_size,
+            rays_per_image=params.rays_per_image, lr=params.lr, weights=weights, seed=params.seed,
+            ckpt_path=ckpt_dir / f"{kind}.pt", checkpoint_every=params.checkpoint_every,
+            spike_factor=params.spike_factor, log=ctx.log, curve_every=params.curve_every,
+            curve_fn=curve_fn if lead else None, writer=writer, lr_decay_to=params.lr_decay_to, rank=rank,
+            world_size=world_size, prune=_prune_schedule(params, iterations))
         ctx.log.info("%s: %d parameters, %d primitives of %d^3 voxels", kind, count_parameters(model),
                      config.num_prims, config.voxels_per_side)
         metrics[f"{kind}_parameters"] = count_parameters(model)
-        with ctx.progress(iterations, f"{kind} it") as progress:
-            state = trainer.run(progress)
+    total = sum(t.iterations for t in trainers.values())
+    if params.parallel_models > 1 and len(kinds) > 1:
+        ctx.log.info("training %s side by side (train.parallel_models=%d)", " and ".join(kinds),
+                     params.parallel_models)
+    started = time.perf_counter()
+    with ctx.progress(total, "it") as progress:
+        states = train_models(trainers, progress, params.parallel_models)
+    # Wall-clock time of the training: the models' own ``{kind}_seconds`` overlap when they train side by side.
+    training_seconds = time.perf_counter() - started
+    for kind in kinds:
+        renderer, state = renderers[kind], states[kind]
+        model, config = renderer.model, renderer.model.config
         curves[kind] = state.curve
         metrics[f"{kind}_iterations"] = state.iteration
         metrics[f"{kind}_seconds"] = state.train_seconds
@@ -312,7 +332,7 @@ def train(ctx: StageContext, rank: int = 0, world_size: int = 1, device: torch.d
         _drop_spill(ctx, rank, data)
         return
     metrics["iterations"] = metrics["ours_iterations"]
-    metrics["seconds"] = sum(metrics[f"{k}_seconds"] for k in kinds)
+    metrics["seconds"] = training_seconds
     metrics["iterations_per_second"] = metrics["ours_iterations"] / max(metrics["ours_seconds"], 1e-9)
     metrics["peak_memory_mb"] = _peak_memory_mb(device)
     metrics["train_frames"] = int(len(train_frames))

@@ -22,6 +22,7 @@ import json
 import logging
 import math
 import os
+import threading
 import time
 import weakref
 from dataclasses import dataclass, field
@@ -36,6 +37,10 @@ from torch import nn
 from avatar.model import RelightableMVP, kl_divergence
 from avatar.raymarch import raymarch
 from avatar.travatar import LightBasis, interpolated_rgb
+
+
+class TrainingStopped(RuntimeError):
+    """A trainer stopped early because a trainer beside it failed (``ModelTrainer.stop_event``)."""
 
 
 @dataclass(frozen=True)
@@ -248,6 +253,9 @@ class ModelTrainer:
         self.prune = prune if prune is not None and 0 < prune.at_iteration <= iterations else None
         # [P] largest opacity each primitive added to a training ray in the pruning window.
         self.prim_alpha_max = torch.zeros(self.model.prim_keep.numel(), device=tensors.device)
+        #: Set by whoever runs this trainer beside others (``side_by_side.train_models``): when the
+        #: event is set, ``run`` stops before its next iteration with ``TrainingStopped``.
+        self.stop_event: threading.Event | None = None
         if world_size > 1:
             from torch.nn.parallel import DistributedDataParallel
 
@@ -430,6 +438,9 @@ class ModelTrainer:
             self.state.curve.append((0, 0.0, self.curve_fn()))
         progress.advance(self.state.iteration)
         while self.state.iteration < self.iterations:
+            if self.stop_event is not None and self.stop_event.is_set():
+                raise TrainingStopped(f"{self.r.kind}: stopped at iteration {self.state.iteration} "
+                                      f"(last checkpoint at {self.ckpt_path})")
             tick = time.perf_counter()
             self.model.train()
             # Exponential decay from lr to lr * lr_decay_to over the run (a function of the

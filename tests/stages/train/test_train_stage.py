@@ -118,6 +118,59 @@ def test_resume_after_kill_continues_the_same_run(capture, tmp_path, monkeypatch
         assert torch.equal(a[key], b[key]), key
 
 
+def test_models_trained_side_by_side_are_the_models_trained_one_after_another(capture, tmp_path):
+    params = {**BASE, "iterations": 8, "baseline_iterations": 6, "lpips": False}
+    one = run_stage_for_test(STAGE, tmp_path / "one", capture, {**params, "parallel_models": 1})
+    two = run_stage_for_test(STAGE, tmp_path / "two", capture, {**params, "parallel_models": 2})
+    for kind in ("ours", "travatar"):
+        a = load_file(str(one / "models" / kind / "model.safetensors"))
+        b = load_file(str(two / "models" / kind / "model.safetensors"))
+        assert a.keys() == b.keys()
+        for key in a:
+            assert torch.equal(a[key], b[key]), (kind, key)
+    m1, m2 = (json.loads((out / "metrics.json").read_text()) for out in (one, two))
+    assert m2["ours_iterations"] == 8 and m2["travatar_iterations"] == 6
+    for split in SPLITS:
+        assert m1[f"travatar_{split}_psnr"] == m2[f"travatar_{split}_psnr"], split
+
+
+def test_a_model_failing_side_by_side_stops_the_other_and_both_resume(capture, tmp_path, monkeypatch, caplog):
+    params = {**BASE, "iterations": 10, "lpips": False, "curve_every": 0, "parallel_models": 2}
+    real_step = trainer_mod.ModelTrainer.step
+
+    def failing_step(self):
+        if self.r.kind == "travatar" and self.state.iteration == 6:
+            raise RuntimeError("travatar broke")
+        if self.r.kind == "ours" and self.state.iteration == 3:
+            # Hold ours mid-run until the failure beside it asks it to stop.
+            assert self.stop_event is not None and self.stop_event.wait(timeout=60)
+        return real_step(self)
+
+    monkeypatch.setattr(trainer_mod.ModelTrainer, "step", failing_step)
+    # The baseline's own error reaches the caller, not the stop it caused beside it.
+    with pytest.raises(RuntimeError, match="travatar broke"):
+        run_stage_for_test(STAGE, tmp_path / "b", capture, params)
+    monkeypatch.setattr(trainer_mod.ModelTrainer, "step", real_step)
+    shutil.rmtree(tmp_path / "b" / "train")  # the runner never commits a failed stage's output
+    with caplog.at_level(logging.INFO):
+        resumed = run_stage_for_test(STAGE, tmp_path / "b", capture, params)
+    # Each resumes from its last checkpoint (every 4 iterations): ours was stopped after its 4th.
+    assert "travatar: resumed at iteration 4" in caplog.text and "ours: resumed at iteration 4" in caplog.text
+    whole = run_stage_for_test(STAGE, tmp_path / "a", capture, {**params, "parallel_models": 1})
+    for kind in ("ours", "travatar"):
+        a = load_file(str(whole / "models" / kind / "model.safetensors"))
+        b = load_file(str(resumed / "models" / kind / "model.safetensors"))
+        for key in a:
+            assert torch.equal(a[key], b[key]), (kind, key)
+
+
+def test_side_by_side_needs_one_process(capture, tmp_path):
+    from pipeline.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="parallel_models"):
+        run_stage_for_test(STAGE, tmp_path, capture, {**BASE, "iterations": 2, "processes": 2, "parallel_models": 2})
+
+
 def test_few_iterations_lower_the_loss(capture, tmp_path):
     from stages.train.data import load_train_data
 
