@@ -15,8 +15,10 @@ avatar section's latent size instead of the rule's) and ``SEEDS_TAG`` (a name fo
 variant). Writes ``bench-results/seeds_<subject>.json`` (``seeds_<subject>_<tag>.json`` with a
 tag); a later run with the same settings reuses the seeds that file already holds and trains
 only the new ones. A tagged run also compares itself with the untagged file's runs of the same
-seeds, data and iterations where there are any: variant - default per model and split, paired
-by seed, with the same 95% interval (``against_default`` in its results). PSNR only (no LPIPS). About 10 minutes
+seeds and data where there are any (at the iterations each was run with; both are printed):
+variant - default per model and split, paired by seed, with the same 95% interval
+(``against_default`` in its results). Each run records its training wall time (``seconds``),
+printed as a mean per seed. PSNR only (no LPIPS). About 10 minutes
 a seed on a 2-core CPU at the preset's 2500 iterations (both models; measured with another
 subject's seeds running beside it).
 """
@@ -116,6 +118,7 @@ def main() -> dict:
                 continue
             m = run_train(inputs, {**base, "seed": seed}, scratch, f"seed{seed}")["metrics"]
             runs[seed] = {f"{k}_{s}": m[f"{k}_{s}_psnr"] for k in MODELS for s in SPLITS}
+            runs[seed]["seconds"] = m["seconds"]  # training wall time, both models
             print(f"seed {seed}: " + ", ".join(f"{s} {runs[seed][f'ours_{s}']:.2f}/{runs[seed][f'travatar_{s}']:.2f}"
                                                 for s in SPLITS) + " (ours/TRAvatar*)", flush=True)
     summary = {s: paired_summary([runs[x][f"ours_{s}"] for x in seeds], [runs[x][f"travatar_{s}"] for x in seeds])
@@ -124,12 +127,19 @@ def main() -> dict:
     for s, r in summary.items():
         print(f"{s:<12} {r['ours_mean']:6.2f} ± {r['ours_std']:4.2f} {r['travatar_mean']:6.2f} ± {r['travatar_std']:4.2f} "
               f"{r['diff_mean']:+6.2f} [{r['diff_ci95'][0]:+.2f}, {r['diff_ci95'][1]:+.2f}]{'':>8}  {r['verdict']}")
+    timed = [runs[x]["seconds"] for x in seeds if "seconds" in runs[x]]
+    if timed:
+        print(f"training wall time per seed (both models): {np.mean(timed):.0f} s (min {min(timed):.0f}, "
+              f"max {max(timed):.0f}, {len(timed)} seeds)")
     results = {"subject": subject, "source": source, "iterations": iterations, "seeds": seeds, "params": base,
                "runs": {str(k): v for k, v in sorted(runs.items())}, "summary": summary}
     if tag:
-        compared = against_default(runs, _default_runs(out / f"seeds_{subject}.json", source, iterations), seeds)
+        default_iterations, default = _default_runs(out / f"seeds_{subject}.json", source)
+        compared = against_default(runs, default, seeds)
         if compared:
-            print(f"{tag} - default, paired over seeds {compared['seeds']} (95% CI):")
+            compared["default_iterations"] = default_iterations
+            print(f"{tag} ({iterations} iterations) - default ({default_iterations} iterations), paired over seeds "
+                  f"{compared['seeds']} (95% CI):")
             for m in MODELS:
                 print(f"  {'ours' if m == 'ours' else 'TRAvatar*':<9} " + ", ".join(
                     f"{s} {compared[f'{m}_{s}']['diff_mean']:+.2f} [{compared[f'{m}_{s}']['diff_ci95'][0]:+.2f}, "
@@ -151,9 +161,16 @@ def _runs_matching(path: Path, **expected: object) -> dict[int, dict]:
     return {int(k): v for k, v in results.get("runs", {}).items()}
 
 
-def _default_runs(path: Path, source: str, iterations: int) -> dict[int, dict]:
-    """Per-seed figures of the untagged run on the same data and iterations, else none."""
-    return _runs_matching(path, source=source, iterations=iterations)
+def _default_runs(path: Path, source: str) -> tuple[int | None, dict[int, dict]]:
+    """Iterations and per-seed figures of the untagged run on the same data, else (None, {}).
+
+    Its iterations may differ from the variant's: a variant may spend a different budget
+    (``SEEDS_ITERATIONS``), and the comparison says so.
+    """
+    runs = _runs_matching(path, source=source)
+    if not runs:
+        return None, {}
+    return int(json.loads(path.read_text())["iterations"]), runs
 
 
 def _earlier_runs(path: Path, params: dict, source: str) -> dict[int, dict]:

@@ -68,7 +68,6 @@ def test_a_variant_is_compared_with_the_default_on_the_seeds_both_hold(tmp_path)
     assert against_default(variant, default, [5]) == {}
     path = tmp_path / "seeds_bob.json"
     path.write_text(json.dumps({"source": "workspace bob", "iterations": 2500, "runs": {"0": run(0.0)}}))
-    assert _default_runs(path, "workspace bob", 2500) == {0: run(0.0)}
-    assert _default_runs(path, "workspace bob", 300) == {}  # other iterations: not comparable
-    assert _default_runs(path, "synthetic capture", 2500) == {}
-    assert _default_runs(tmp_path / "none.json", "workspace bob", 2500) == {}
+    assert _default_runs(path, "workspace bob") == (2500, {0: run(0.0)})  # its iterations, to print beside
+    assert _default_runs(path, "synthetic capture") == (None, {})  # other data: not comparable
+    assert _default_runs(tmp_path / "none.json", "workspace bob") == (None, {})
