@@ -43,6 +43,19 @@ N*M = 1024 for a head ~620 px wide in 768 px images. Earlier constants, each mov
 measurement: voxels no finer than a pixel (N*M = 128 here) and texels no finer than a pixel
 (knee at 64 on an earlier capture of alice).
 
+The tiny preset spends the time that training both models side by side saves
+(``train.parallel_models``) on that next size: ``min_texel_px: 1`` gives N=16, M=4 and 32
+steps on bob and alice. Over 5 seeds on bob (both models, 2500 iterations,
+``SEEDS_TAG=tex1 SEEDS_SET='{"capacity_rule": {"min_texel_px": 1.0}}'``), against the knee's
+N=16, M=2 on the same seeds, ours gains +1.46 [+1.09, +1.84] / +2.14 [+1.15, +3.13] /
++1.84 [+1.20, +2.48] / +1.80 [+1.50, +2.11] dB (novel light / performance / both / training
+images, 95% intervals) and TRAvatar* +1.40 / +1.42 / +1.49 / +1.85, every one resolved, at
+1.5x the cost per iteration (one model alone: 295 s against 197 s, seed 0). Both models
+side by side take 323 s of training a seed (303 to 347), less than the ~390 s the smaller
+size's two took one after another in an earlier run on the same CPU. The size after, N*M = 128 (``min_texel_px: 0.5``, N=32), lost 5.8 dB
+for ours on seed 0 at 3x the cost, and 5000 iterations at N*M = 64 gained another 1.0 to
+1.6 dB on seed 0 at twice the time, past the tiny budget.
+
 The steps are spread over a ray's whole span through the boxes (``avatar.raymarch``), most of
 which lies past where the ray turns opaque: on bob (ours, seed 0, N=16, M=2, 16 steps, 4
 frames x 10 cameras) foreground rays cross 9.8 cm of boxes at the median and are opaque after
