@@ -15,6 +15,9 @@ Output:
     tensorboard/                     loss terms and held-out PSNR
     metrics.json                     see METRICS.md (train)
 
+The two models train one after another, or side by side in two threads of this process
+(``parallel_models: 2``, ``stages.train.side_by_side``), to the same weights either way.
+
 The learning curves and TensorBoard files hold wall-clock times: they are the stage's run
 records (``Stage.run_records``), left out of the key relight and evaluate see, so a rerun
 that trains the same models leaves them fresh.
