@@ -54,20 +54,16 @@ def train_models(trainers: dict[str, ModelTrainer], progress: Any, parallel: int
     pool = ThreadPoolExecutor(max_workers=min(parallel, len(trainers)), thread_name_prefix="train")
     futures = {name: pool.submit(trainer.run, shared) for name, trainer in trainers.items()}
     try:
-        done, _ = wait(futures.values(), return_when=FIRST_EXCEPTION)
-        failed = [f for f in done if f.exception() is not None]
-        if failed:
-            stop.set()
-            wait(futures.values())
-            # The error that stopped the others, not their TrainingStopped.
-            first = next((f for f in failed if not isinstance(f.exception(), TrainingStopped)), failed[0])
-            raise first.exception()  # type: ignore[misc]
-        return {name: future.result() for name, future in futures.items()}
-    except BaseException:
-        stop.set()  # KeyboardInterrupt while waiting: the workers must not train on
-        wait(futures.values())
-        raise
+        wait(futures.values(), return_when=FIRST_EXCEPTION)
     finally:
+        # A trainer failed, or this thread was interrupted: the others stop at their next
+        # iteration (when all have finished, nobody reads the flag any more).
+        stop.set()
         pool.shutdown(wait=True)
         for trainer in trainers.values():
             trainer.stop_event = None
+    errors = [f.exception() for f in futures.values() if f.exception() is not None]
+    if errors:
+        # The error that stopped the others, not their TrainingStopped.
+        raise next((e for e in errors if not isinstance(e, TrainingStopped)), errors[0])
+    return {name: future.result() for name, future in futures.items()}
