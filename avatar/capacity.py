@@ -52,7 +52,10 @@ N=16, M=2 on the same seeds, ours gains +1.46 [+1.09, +1.84] / +2.14 [+1.15, +3.
 images, 95% intervals) and TRAvatar* +1.40 / +1.42 / +1.49 / +1.85, every one resolved, at
 1.5x the cost per iteration (one model alone: 295 s against 197 s, seed 0). Both models
 side by side take 323 s of training a seed (303 to 347), less than the ~390 s the smaller
-size's two took one after another in an earlier run on the same CPU. The size after, N*M = 128 (``min_texel_px: 0.5``, N=32), lost 5.8 dB
+size's two took one after another in an earlier run on the same CPU. At this size, 16 steps
+instead of the rule's 32 train both in 239 s a seed, but cost ours 0.33 dB [0.03, 0.62] on novel
+light over seeds 0-2 (+0.09 on novel performance, the rest unresolved;
+``SEEDS_TAG=st16 SEEDS_SET='{"capacity_rule": {"max_steps": 16}}'``), so the rule keeps 32. The size after, N*M = 128 (``min_texel_px: 0.5``, N=32), lost 5.8 dB
 for ours on seed 0 at 3x the cost, and 5000 iterations at N*M = 64 gained another 1.0 to
 1.6 dB on seed 0 at twice the time, past the tiny budget.
 
