@@ -3,8 +3,8 @@
 Figures: training iterations per second and peak memory (tiny preset's batch, and the
 paper's configuration: on a GPU at batch 12, on a CPU a few iterations at batch 1), the
 time to render one image, and on a CPU ours and TRAvatar* trained side by side against one
-after another (``train.parallel_models``). The data are the rig's cameras around the ICT head with random
-targets: speed does not depend on image content. Writes ``bench-results/train.json``.
+after another (``train.parallel_models``). The data are the rig's cameras around the ICT head
+with random targets: speed does not depend on image content. Writes ``bench-results/train.json``.
 Timings on a shared CPU are noisy.
 """
 
@@ -57,6 +57,14 @@ def _tensors(width_px: int, frames: int, device: torch.device) -> tuple[TrainTen
     return t, verts, face.triangles
 
 
+def _trainer(renderer: Renderer, t: TrainTensors, iterations: int, batch: int, rays: int,
+             ckpt_path: Path) -> ModelTrainer:
+    """A trainer for speed runs: every frame of ``t``, no rollback, no checkpoint until the end."""
+    return ModelTrainer(renderer, t, np.arange(int(t.bar.shape[0])), iterations=iterations, batch_size=batch,
+                        rays_per_image=rays, lr=1e-4, weights=LossWeights(), seed=0, ckpt_path=ckpt_path,
+                        checkpoint_every=10 ** 9, spike_factor=1e9, log=logging.getLogger("bench"))
+
+
 def _measure(config: AvatarConfig, width_px: int, batch: int, rays: int, iterations: int,
              device: torch.device, render: bool = True) -> dict[str, float]:
     t, verts, tris = _tensors(width_px, 2, device)
@@ -65,9 +73,7 @@ def _measure(config: AvatarConfig, width_px: int, batch: int, rays: int, iterati
     torch.manual_seed(0)
     model = RelightableMVP(config, layout, num_bars=1).to(device)
     renderer = Renderer(model, "ours", None, [0])
-    tr = ModelTrainer(renderer, t, np.arange(2), iterations=iterations, batch_size=batch, rays_per_image=rays,
-                      lr=1e-4, weights=LossWeights(), seed=0, ckpt_path=Path("/nonexistent"), checkpoint_every=10 ** 9,
-                      spike_factor=1e9, log=logging.getLogger("bench"))
+    tr = _trainer(renderer, t, iterations, batch, rays, Path("/nonexistent"))
     tr.step()  # warm-up
     if device.type == "cuda":
         torch.cuda.synchronize()
@@ -105,6 +111,7 @@ def _side_by_side(config: AvatarConfig, width_px: int, batch: int, rays: int, it
     import tempfile
 
     from avatar.travatar import LightBasis
+    from pipeline.progress import SilentProgress
     from stages.train.side_by_side import train_models
 
     t, verts, tris = _tensors(width_px, 3, torch.device("cpu"))
@@ -114,10 +121,6 @@ def _side_by_side(config: AvatarConfig, width_px: int, batch: int, rays: int, it
     t.guide_vertices = torch.as_tensor(verts[layout.guide_vertex_ids])[None].expand(3, -1, -1).contiguous()
     basis = LightBasis(lights / np.linalg.norm(lights, axis=1, keepdims=True))
 
-    class _Quiet:
-        def advance(self, n: int = 1, **fields: object) -> None:
-            pass
-
     def run(parallel: int, folder: Path) -> tuple[float, list[torch.Tensor]]:
         trainers = {}
         for kind in ("ours", "travatar"):
@@ -125,12 +128,9 @@ def _side_by_side(config: AvatarConfig, width_px: int, batch: int, rays: int, it
             model = RelightableMVP(config.model_copy(update={"light_basis": 3 if kind == "travatar" else 0}),
                                    layout, num_bars=3)
             renderer = Renderer(model, kind, basis if kind == "travatar" else None, [0, 1, 2])
-            trainers[kind] = ModelTrainer(renderer, t, np.arange(3), iterations=iterations, batch_size=batch,
-                                          rays_per_image=rays, lr=1e-4, weights=LossWeights(), seed=0,
-                                          ckpt_path=folder / f"{kind}.pt", checkpoint_every=10 ** 9,
-                                          spike_factor=1e9, log=logging.getLogger("bench"))
+            trainers[kind] = _trainer(renderer, t, iterations, batch, rays, folder / f"{kind}.pt")
         start = time.perf_counter()
-        train_models(trainers, _Quiet(), parallel)
+        train_models(trainers, SilentProgress(), parallel)
         seconds = time.perf_counter() - start
         return seconds, [p.detach().clone() for tr in trainers.values() for p in tr.model.parameters()]
 

@@ -163,6 +163,22 @@ class ProgressLine:
         self.close()
 
 
+class SilentProgress:
+    """Progress that shows nothing (``pipeline.stage.Progress``): DDP ranks that do not report, benchmarks."""
+
+    def advance(self, n: int = 1, **fields: Any) -> None:
+        """Nothing to show."""
+
+    def close(self) -> None:
+        """Nothing to close."""
+
+    def __enter__(self) -> "SilentProgress":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        return None
+
+
 def progress_factory(label: str, log: logging.Logger, **kwargs: Any) -> Callable[[int, str], ProgressLine]:
     """A ``StageContext.progress_factory`` making lines labelled with the stage name."""
 

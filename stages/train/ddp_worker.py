@@ -23,25 +23,10 @@ import torch
 import torch.distributed as dist
 
 from pipeline.executors import LocalExecutor
-from pipeline.progress import progress_factory
+from pipeline.progress import SilentProgress, progress_factory
 from pipeline.stage import StageContext
 from stages.train.stage import TrainParams, _device, train
 
-
-class _Silent:
-    """Progress of the ranks that do not report."""
-
-    def advance(self, n: int = 1, **fields: object) -> None:
-        """Nothing to show."""
-
-    def close(self) -> None:
-        """Nothing to close."""
-
-    def __enter__(self) -> "_Silent":
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        return None
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -61,7 +46,7 @@ def main(argv: list[str] | None = None) -> int:
     dist.init_process_group("nccl" if device.type == "cuda" else "gloo", timeout=timedelta(minutes=30))
     try:
         metrics: dict[str, float] = {}
-        factory = progress_factory(job["stage"], log, tty=False) if rank == 0 else (lambda total, unit: _Silent())
+        factory = progress_factory(job["stage"], log, tty=False) if rank == 0 else (lambda total, unit: SilentProgress())
         ctx = StageContext(stage=job["stage"], subject=job["subject"], params=params,
                            inputs={k: Path(v) for k, v in job["inputs"].items()}, out=Path(job["out"]),
                            extra_outputs={}, log=log, metrics=metrics, cache_dir=Path(job["cache_dir"]),

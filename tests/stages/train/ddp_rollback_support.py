@@ -11,6 +11,7 @@ import numpy as np
 import torch
 import torch.distributed as dist
 
+from pipeline.progress import SilentProgress
 from train_synth import small_model
 
 
@@ -63,11 +64,7 @@ def rollback_rank(rank: int, world_size: int, init_file: str, capture: dict[str,
             checkpoint_every=2, spike_factor=10.0, log=log, rank=rank, world_size=world_size, curve_every=1,
             curve_fn=after_iteration)
 
-        class _Quiet:
-            def advance(self, n: int = 1, **fields: object) -> None:
-                return None
-
-        trainer.run(_Quiet())
+        trainer.run(SilentProgress())
         (workdir / f"rank{rank}.json").write_text(json.dumps(record[1:]))  # record[0]: before training
         trainer = None  # its curve hook closes over it: a cycle only a collection frees
         gc.collect()

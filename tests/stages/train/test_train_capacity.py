@@ -13,6 +13,7 @@ import torch
 from avatar.capacity import CapacityRule, CaptureStats, choose_capacity, latent_size
 from avatar.config import AvatarConfig
 from pipeline.errors import ConfigError
+from pipeline.progress import SilentProgress
 from pipeline.testing import run_stage_for_test
 from stages.train import trainer as trainer_mod
 from stages.train.stage import STAGE, TrainParams, capacity_of
@@ -118,15 +119,10 @@ def _trainer_with_an_empty_primitive(capture, tmp_path, monkeypatch, checkpoint_
     return tr, config, visible, empty, seen
 
 
-class _Progress:
-    def advance(self, *args, **kwargs) -> None:
-        pass
-
-
 def test_scheduled_pruning_drops_an_always_empty_primitive_and_keeps_a_visible_one(capture, tmp_path, monkeypatch):
     tr, config, visible, empty, seen = _trainer_with_an_empty_primitive(capture, tmp_path, monkeypatch, 100)
     model = tr.model
-    state = tr.run(_Progress())
+    state = tr.run(SilentProgress())
     assert state.prune_done and state.pruned == model.num_pruned > 0
     assert float(tr.prim_alpha_max[empty]) == 0.0 and float(tr.prim_alpha_max[visible]) > 0.01
     assert not bool(model.prim_keep[empty]) and bool(model.prim_keep[visible])
@@ -150,7 +146,7 @@ def test_a_rollback_to_a_state_saved_before_pruning_keeps_the_primitives_pruned(
         return total, terms
 
     monkeypatch.setattr(trainer_mod.ModelTrainer, "losses", nan_at_iteration_9)
-    state = tr.run(_Progress())
+    state = tr.run(SilentProgress())
     assert state.rollbacks == 1 and state.prune_done and state.pruned > 0
     assert not bool(tr.model.prim_keep[empty]) and bool(tr.model.prim_keep[visible])
     assert int((~tr.model.prim_keep).sum()) == state.pruned

@@ -23,6 +23,16 @@ BASE = {"avatar": SMALL_AVATAR, "image_width_px": 24, "batch_size": 2, "rays_per
         "held_out_fraction": 1.0}  # the whole short "speech" take: every split gets frames
 
 
+def assert_same_models(a: Path, b: Path, kinds: tuple[str, ...] = ("ours", "travatar")) -> None:
+    """The stage outputs ``a`` and ``b`` hold bit-identical weights for every model in ``kinds``."""
+    for kind in kinds:
+        first = load_file(str(a / "models" / kind / "model.safetensors"))
+        second = load_file(str(b / "models" / kind / "model.safetensors"))
+        assert first.keys() == second.keys(), kind
+        for key in first:
+            assert torch.equal(first[key], second[key]), (kind, key)
+
+
 @pytest.fixture(scope="module")
 def capture(tmp_path_factory) -> dict[str, Path]:
     import sys
@@ -112,22 +122,14 @@ def test_resume_after_kill_continues_the_same_run(capture, tmp_path, monkeypatch
     with caplog.at_level(logging.INFO):
         resumed = run_stage_for_test(STAGE, tmp_path / "b", capture, params)
     assert "resumed at iteration 4" in caplog.text
-    a = load_file(str(whole / "models" / "ours" / "model.safetensors"))
-    b = load_file(str(resumed / "models" / "ours" / "model.safetensors"))
-    for key in a:
-        assert torch.equal(a[key], b[key]), key
+    assert_same_models(whole, resumed, ("ours",))
 
 
 def test_models_trained_side_by_side_are_the_models_trained_one_after_another(capture, tmp_path):
     params = {**BASE, "iterations": 8, "baseline_iterations": 6, "lpips": False}
     one = run_stage_for_test(STAGE, tmp_path / "one", capture, {**params, "parallel_models": 1})
     two = run_stage_for_test(STAGE, tmp_path / "two", capture, {**params, "parallel_models": 2})
-    for kind in ("ours", "travatar"):
-        a = load_file(str(one / "models" / kind / "model.safetensors"))
-        b = load_file(str(two / "models" / kind / "model.safetensors"))
-        assert a.keys() == b.keys()
-        for key in a:
-            assert torch.equal(a[key], b[key]), (kind, key)
+    assert_same_models(one, two)
     m1, m2 = (json.loads((out / "metrics.json").read_text()) for out in (one, two))
     assert m2["ours_iterations"] == 8 and m2["travatar_iterations"] == 6
     for split in SPLITS:
@@ -157,11 +159,7 @@ def test_a_model_failing_side_by_side_stops_the_other_and_both_resume(capture, t
     # Each resumes from its last checkpoint (every 4 iterations): ours was stopped after its 4th.
     assert "travatar: resumed at iteration 4" in caplog.text and "ours: resumed at iteration 4" in caplog.text
     whole = run_stage_for_test(STAGE, tmp_path / "a", capture, {**params, "parallel_models": 1})
-    for kind in ("ours", "travatar"):
-        a = load_file(str(whole / "models" / kind / "model.safetensors"))
-        b = load_file(str(resumed / "models" / kind / "model.safetensors"))
-        for key in a:
-            assert torch.equal(a[key], b[key]), (kind, key)
+    assert_same_models(whole, resumed)
 
 
 def test_side_by_side_needs_one_process(capture, tmp_path):
