@@ -29,9 +29,12 @@ Two implementations give the same images:
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal, get_args
 
 import torch
 import torch.nn.functional as F
+
+from avatar.raymarch_fused import fused_module, fused_raymarch
 
 
 @dataclass
@@ -142,6 +145,24 @@ def composite(sigma: torch.Tensor, sigma_rgb: torch.Tensor, dt: torch.Tensor) ->
     return RenderResult(rgb=rgb, alpha=alpha)
 
 
+RaymarchKernel = Literal["auto", "fused", "torch"]
+KERNELS: tuple[str, ...] = get_args(RaymarchKernel)
+
+
+def _use_fused(kernel: RaymarchKernel, voxels: torch.Tensor) -> bool:
+    """Whether this call runs the fused CPU kernel (``"fused"`` insists: it raises where it cannot)."""
+    if kernel == "torch":
+        return False
+    applies = voxels.device.type == "cpu" and voxels.dtype in (torch.float32, torch.float64)
+    if kernel == "fused":
+        if not applies:
+            raise ValueError("the fused raymarcher takes CPU float32 or float64 tensors; "
+                             f"got {voxels.device.type} {voxels.dtype}: use kernel='auto' or 'torch'")
+        fused_module(required=True)
+        return True
+    return applies and fused_module(required=False) is not None
+
+
 _CORNERS = torch.tensor([[dx, dy, dz] for dz in (0, 1) for dy in (0, 1) for dx in (0, 1)])  # [8, 3] (x, y, z)
 
 
@@ -173,22 +194,30 @@ def _sample_share(sigma: torch.Tensor, dt: torch.Tensor) -> torch.Tensor:
 
 
 def raymarch(prims: Primitives, rays_o: torch.Tensor, rays_d: torch.Tensor, steps: int,
-             max_pairs: int = 1 << 23, prim_stats: bool = False) -> RenderResult:
+             max_pairs: int = 1 << 23, prim_stats: bool = False, kernel: RaymarchKernel = "auto") -> RenderResult:
     """Render rays [B, R, 3] (origins, unit directions; head space) through ``prims``: the fast path.
 
     Differentiable in the primitives' geometry, colours and densities. Rays are processed in
     chunks so that no [B, R_chunk, P] intermediate exceeds ``max_pairs`` entries.
     ``prim_stats``: also return ``prim_alpha`` [B, P] (see ``RenderResult``; not differentiable).
+    ``kernel``: ``"fused"`` the C++ CPU kernel (``avatar.raymarch_fused``; CPU tensors only),
+    ``"torch"`` tensor ops (CPU or GPU), ``"auto"`` the fused kernel where it applies and builds
+    (CPU float tensors), tensor ops otherwise. All give the same images and gradients.
     """
+    if kernel not in KERNELS:
+        raise ValueError(f"raymarch kernel {kernel!r} is not one of {', '.join(KERNELS)}")
     b, r, _ = rays_o.shape
     p = prims.centre.shape[1]
     chunk = max(1, min(r, max_pairs // max(1, b * p)))
     if chunk < r:
-        parts = [raymarch(prims, rays_o[:, i:i + chunk], rays_d[:, i:i + chunk], steps, max_pairs, prim_stats)
+        parts = [raymarch(prims, rays_o[:, i:i + chunk], rays_d[:, i:i + chunk], steps, max_pairs, prim_stats,
+                          kernel)
                  for i in range(0, r, chunk)]
         prim_alpha = torch.stack([x.prim_alpha for x in parts]).amax(0) if prim_stats else None
         return RenderResult(torch.cat([x.rgb for x in parts], 1), torch.cat([x.alpha for x in parts], 1),
                             prim_alpha)
+    if _use_fused(kernel, prims.density):
+        return _raymarch_fused(prims, rays_o, rays_d, steps, prim_stats)
     m = prims.voxels_per_side
     hit, t_near, t_far = box_intervals(prims, rays_o, rays_d)
     t, dt = ray_samples(hit, t_near, t_far, steps)  # [B, R, S], [B, R]
@@ -197,11 +226,6 @@ def raymarch(prims: Primitives, rays_o: torch.Tensor, rays_d: torch.Tensor, step
         cand_hit, cand = torch.topk(hit.to(torch.uint8), k, dim=-1)  # [B, R, K] candidates per ray
         cand_near = torch.gather(t_near, -1, cand)  # [B, R, K]
         cand_far = torch.gather(t_far, -1, cand)
-        inside = (cand_hit.bool()[:, :, None, :] & (t[..., None] >= cand_near[:, :, None, :])
-                  & (t[..., None] <= cand_far[:, :, None, :]))  # [B, R, S, K]
-        bi, ri, si, ki = inside.nonzero(as_tuple=True)  # Q (sample, primitive) pairs inside a box
-        pair_ray = (bi * r + ri) * k + ki  # [Q] row of the (ray, candidate)
-        t_q = t[bi, ri, si]  # [Q]
     # The ray in each candidate's local frame, y(t) = o_local + t d_local (differentiable).
     flat_p = (torch.arange(b, device=cand.device)[:, None, None] * p + cand).reshape(-1)  # [B*R*K]
     local_from_head, centre_local = _to_local(prims)  # differentiable in the geometry
@@ -209,8 +233,14 @@ def raymarch(prims: Primitives, rays_o: torch.Tensor, rays_d: torch.Tensor, step
     o_local = (torch.einsum("bri,brkij->brkj", rays_o, mat)
                - centre_local.reshape(-1, 3)[flat_p].view(b, r, k, 3))  # [B, R, K, 3]
     d_local = torch.einsum("bri,brkij->brkj", rays_d, mat)  # [B, R, K, 3]
-    local = o_local.reshape(-1, 3)[pair_ray] + t_q[:, None] * d_local.reshape(-1, 3)[pair_ray]  # [Q, 3]
     table = torch.cat([prims.rgb, prims.density[..., None]], -1).reshape(-1, 4)  # [B*P*M^3, 4]
+    with torch.no_grad():
+        inside = (cand_hit.bool()[:, :, None, :] & (t[..., None] >= cand_near[:, :, None, :])
+                  & (t[..., None] <= cand_far[:, :, None, :]))  # [B, R, S, K]
+        bi, ri, si, ki = inside.nonzero(as_tuple=True)  # Q (sample, primitive) pairs inside a box
+        pair_ray = (bi * r + ri) * k + ki  # [Q] row of the (ray, candidate)
+        t_q = t[bi, ri, si]  # [Q]
+    local = o_local.reshape(-1, 3)[pair_ray] + t_q[:, None] * d_local.reshape(-1, 3)[pair_ray]  # [Q, 3]
     rgba = _trilinear_gather(table, flat_p[pair_ray] * (m ** 3), local, m)  # [Q, 4]
     sigma_k = rgba[:, 3]
     sample_id = (bi * r + ri) * steps + si  # [Q]
@@ -229,6 +259,37 @@ def raymarch(prims: Primitives, rays_o: torch.Tensor, rays_d: torch.Tensor, step
                 0, flat_p, per_ray, reduce="amax", include_self=True)
         result.prim_alpha = prim_alpha.view(b, p)
     return result
+
+
+def _raymarch_fused(prims: Primitives, rays_o: torch.Tensor, rays_d: torch.Tensor, steps: int,
+                    prim_stats: bool) -> RenderResult:
+    """``raymarch`` by the fused CPU kernel: the slab test and the march run in C++ per ray."""
+    b, r, _ = rays_o.shape
+    p = prims.centre.shape[1]
+    m = prims.voxels_per_side
+    local_from_head, centre_local = _to_local(prims)  # differentiable in the geometry
+    module = fused_module(required=True)
+    with torch.no_grad():
+        cand, near, far, t_min, t_max = module.candidates(
+            rays_o.detach().contiguous(), rays_d.detach().contiguous(), local_from_head.detach().contiguous(),
+            centre_local.detach().contiguous())  # [B*R, K] x3, [B*R] x2
+        k = cand.shape[1]
+        dt = (t_max - t_min) / steps  # [B*R]
+        t = t_min[:, None] + (torch.arange(steps, dtype=dt.dtype) + 0.5) * dt[:, None]  # [B*R, S]
+        batch_of_ray = torch.arange(b).repeat_interleave(r)[:, None]  # [B*R, 1]
+        flat_p = batch_of_ray * p + cand.clamp(min=0)  # [B*R, K] primitive row over the batch
+        base = torch.where(cand >= 0, flat_p * (m ** 3), -1)  # [B*R, K]
+    # The ray in each candidate's local frame, y(t) = o_local + t d_local (differentiable).
+    mat = local_from_head.reshape(-1, 3, 3)[flat_p]  # [B*R, K, 3, 3]
+    o_local = torch.einsum("ri,rkij->rkj", rays_o.reshape(-1, 3), mat) - centre_local.reshape(-1, 3)[flat_p]
+    d_local = torch.einsum("ri,rkij->rkj", rays_d.reshape(-1, 3), mat)  # [B*R, K, 3]
+    table = torch.cat([prims.rgb, prims.density[..., None]], -1).reshape(-1, 4)  # [B*P*M^3, 4]
+    rgb, alpha, added = fused_raymarch(table, o_local, d_local, base, near, far, t, dt, m, with_added=prim_stats)
+    prim_alpha = None
+    if prim_stats:  # empty slots added 0, so their stand-in row (clamped to the batch item's box 0) is harmless
+        prim_alpha = torch.zeros(b * p, dtype=added.dtype).scatter_reduce(
+            0, flat_p.reshape(-1), added.reshape(-1), reduce="amax", include_self=True).view(b, p)
+    return RenderResult(rgb=rgb.view(b, r, 3), alpha=alpha.view(b, r), prim_alpha=prim_alpha)
 
 
 def raymarch_reference(prims: Primitives, rays_o: torch.Tensor, rays_d: torch.Tensor, steps: int) -> RenderResult:

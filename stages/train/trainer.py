@@ -35,7 +35,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from avatar.model import RelightableMVP, kl_divergence
-from avatar.raymarch import raymarch
+from avatar.raymarch import RaymarchKernel, raymarch
 from avatar.travatar import LightBasis, interpolated_rgb
 
 
@@ -150,9 +150,13 @@ class TrainState:
 class Renderer:
     """Decodes and raymarches one model kind for given frames, cameras and lights."""
 
-    def __init__(self, model: RelightableMVP, kind: str, basis: LightBasis | None, basis_bars: list[int]) -> None:
-        """``basis_bars``: the training bars (TRAvatar*'s light basis, in order; the bars with a learnt intensity)."""
-        self.model, self.kind, self.basis = model, kind, basis
+    def __init__(self, model: RelightableMVP, kind: str, basis: LightBasis | None, basis_bars: list[int],
+                 kernel: RaymarchKernel = "auto") -> None:
+        """``basis_bars``: the training bars (TRAvatar*'s light basis, in order; the bars with a learnt intensity).
+
+        ``kernel``: the raymarcher (``avatar.raymarch.raymarch``'s ``kernel``).
+        """
+        self.model, self.kind, self.basis, self.kernel = model, kind, basis, kernel
         self.basis_index = {b: i for i, b in enumerate(basis_bars)}
 
     def rgb(self, geometry, cam_pos: torch.Tensor, light_pos: torch.Tensor, bar: torch.Tensor,
@@ -186,7 +190,7 @@ class Renderer:
             intensity = self.model.bar_intensity(b_eff)
             rgb = self.rgb(geo, t.cam_pos[f, c][None], lp, b_eff, intensity)
             res = raymarch(geo.primitives(rgb), *[x[None] for x in t.image_rays(f, c)],
-                           self.model.config.steps_per_ray)
+                           self.model.config.steps_per_ray, kernel=self.kernel)
             rgbs.append(res.rgb.view(t.height, t.width, 3))
             alphas.append(res.alpha.view(t.height, t.width))
         return torch.stack(rgbs), torch.stack(alphas)
@@ -340,7 +344,7 @@ class ModelTrainer:
         bar = t.bar[frames]
         rgb = self.r.rgb(geo, t.cam_pos[frames, cams], t.light_pos[frames], bar, model.bar_intensity(bar))
         record = self._recording()
-        res = raymarch(geo.primitives(rgb), ro, rd, model.config.steps_per_ray, prim_stats=record)
+        res = raymarch(geo.primitives(rgb), ro, rd, model.config.steps_per_ray, prim_stats=record, kernel=self.r.kernel)
         if record:
             self.prim_alpha_max = torch.maximum(self.prim_alpha_max, res.prim_alpha.amax(0))
         pho = F.mse_loss(res.rgb, gt)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import torch
 
 from avatar.config import AvatarConfig
@@ -33,11 +34,12 @@ def _rays_at(xs: list[float], y: float = 0.0) -> tuple[torch.Tensor, torch.Tenso
     return o, d
 
 
-def test_prim_alpha_is_the_opacity_a_primitive_adds():
+@pytest.mark.parametrize("kernel", ["torch", "fused"])
+def test_prim_alpha_is_the_opacity_a_primitive_adds(kernel):
     prims = _row_of_boxes([2.0, 0.0, 2.0])  # the middle box is empty
     o, d = _rays_at([0.0, 0.5, 1.0, 0.05])
-    res = raymarch(prims, o, d, steps=32, prim_stats=True)
-    plain = raymarch(prims, o, d, steps=32)
+    res = raymarch(prims, o, d, steps=32, prim_stats=True, kernel=kernel)
+    plain = raymarch(prims, o, d, steps=32, kernel=kernel)
     torch.testing.assert_close(res.rgb, plain.rgb)  # the statistics change nothing
     # One box per ray: the opacity it adds is the ray's alpha (1 - nothing before it).
     assert float(res.prim_alpha[0, 1]) == 0.0
@@ -46,14 +48,15 @@ def test_prim_alpha_is_the_opacity_a_primitive_adds():
     assert float(res.prim_alpha[0, 0]) > 0.3
 
 
-def test_prim_alpha_ignores_boxes_behind_an_opaque_one_and_survives_chunking():
+@pytest.mark.parametrize("kernel", ["torch", "fused"])
+def test_prim_alpha_ignores_boxes_behind_an_opaque_one_and_survives_chunking(kernel):
     prims = _row_of_boxes([200.0, 1.0])
     prims.centre[0, 1] = torch.tensor([0.0, 0.0, -0.5], dtype=torch.float64)  # behind box 0 along the rays
     o, d = _rays_at([0.0, 0.02, -0.03])
-    res = raymarch(prims, o, d, steps=64, prim_stats=True)
+    res = raymarch(prims, o, d, steps=64, prim_stats=True, kernel=kernel)
     assert float(res.alpha.min()) == 1.0
     assert float(res.prim_alpha[0, 0]) == 1.0 and float(res.prim_alpha[0, 1]) == 0.0
-    chunked = raymarch(prims, o, d, steps=64, max_pairs=2, prim_stats=True)  # one ray per chunk
+    chunked = raymarch(prims, o, d, steps=64, max_pairs=2, prim_stats=True, kernel=kernel)  # one ray per chunk
     torch.testing.assert_close(chunked.prim_alpha, res.prim_alpha)
 
 

@@ -1,4 +1,5 @@
-"""The raymarcher: fast path vs reference, gradients vs finite differences, an opaque primitive."""
+"""The raymarcher: both fast paths (tensor ops, fused C++) vs the reference, gradients vs finite
+differences, an opaque primitive, and the fused kernel's fallback when it cannot be built."""
 
 from __future__ import annotations
 
@@ -6,7 +7,11 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
+import avatar.raymarch_fused as fused
 from avatar.raymarch import Primitives, raymarch, raymarch_reference
+
+# Every fast-path test runs on both CPU fast paths.
+KERNELS = pytest.mark.parametrize("kernel", ["torch", "fused"])
 
 
 def _scene(b: int = 2, p: int = 6, m: int = 4, r: int = 40, density: float = 3.0, seed: int = 0,
@@ -25,11 +30,12 @@ def _scene(b: int = 2, p: int = 6, m: int = 4, r: int = 40, density: float = 3.0
     return Primitives(centre, rot, half, rgb, den), origins, dirs
 
 
-def test_fast_path_matches_reference_forward_and_backward():
+@KERNELS
+def test_fast_path_matches_reference_forward_and_backward(kernel):
     prims, o, d = _scene(density=6.0)  # dense enough that many rays saturate (early termination)
     leaves = [prims.rgb.requires_grad_(), prims.density.requires_grad_(), prims.centre.requires_grad_(),
-              prims.half_extent.requires_grad_()]
-    fast = raymarch(prims, o, d, steps=24)
+              prims.half_extent.requires_grad_(), prims.rotation.requires_grad_()]
+    fast = raymarch(prims, o, d, steps=24, kernel=kernel)
     ref = raymarch_reference(prims, o, d, steps=24)
     assert (ref.alpha > 0.999).any() and (ref.alpha < 0.5).any()
     torch.testing.assert_close(fast.rgb, ref.rgb, rtol=1e-9, atol=1e-10)
@@ -41,26 +47,30 @@ def test_fast_path_matches_reference_forward_and_backward():
         torch.testing.assert_close(a, b, rtol=1e-7, atol=1e-9)
 
 
-def test_chunked_rays_match_unchunked():
+@KERNELS
+def test_chunked_rays_match_unchunked(kernel):
     prims, o, d = _scene()
-    whole = raymarch(prims, o, d, steps=16)
-    chunked = raymarch(prims, o, d, steps=16, max_pairs=2 * 6 * 7)  # 7 rays per chunk
+    whole = raymarch(prims, o, d, steps=16, kernel=kernel)
+    chunked = raymarch(prims, o, d, steps=16, max_pairs=2 * 6 * 7, kernel=kernel)  # 7 rays per chunk
     torch.testing.assert_close(whole.rgb, chunked.rgb)
 
 
-def test_gradients_match_finite_differences():
+@KERNELS
+def test_gradients_match_finite_differences(kernel):
     # Low density: no ray saturates, so the image is smooth in every input.
     prims, o, d = _scene(b=1, p=3, m=3, r=12, density=0.5, seed=3)
 
     def render(rgb, density):
-        res = raymarch(Primitives(prims.centre, prims.rotation, prims.half_extent, rgb, density), o, d, steps=10)
+        res = raymarch(Primitives(prims.centre, prims.rotation, prims.half_extent, rgb, density), o, d, steps=10,
+                       kernel=kernel)
         return torch.cat([res.rgb.flatten(), res.alpha.flatten()])
 
     inputs = (prims.rgb.clone().requires_grad_(), prims.density.clone().requires_grad_())
     assert torch.autograd.gradcheck(render, inputs, eps=1e-6, atol=1e-5, rtol=1e-4, fast_mode=True)
 
 
-def test_geometry_gradients_match_finite_differences():
+@KERNELS
+def test_geometry_gradients_match_finite_differences(kernel):
     # Sample placement is not differentiated (as in MVP): the ray's span comes from the boxes
     # it hits. Add a large empty box around everything so the span, and hence the samples,
     # stay fixed while the small boxes move; then the image is smooth in their pose.
@@ -74,14 +84,15 @@ def test_geometry_gradients_match_finite_differences():
         cat = [torch.cat([a, b], 1) for a, b in zip(
             (centre, prims.rotation, half, prims.rgb, prims.density),
             (big.centre, big.rotation, big.half_extent, big.rgb, big.density))]
-        res = raymarch(Primitives(*cat), o, d, steps=24)
+        res = raymarch(Primitives(*cat), o, d, steps=24, kernel=kernel)
         return torch.cat([res.rgb.flatten(), res.alpha.flatten()])
 
     inputs = (prims.centre.clone().requires_grad_(), prims.half_extent.clone().requires_grad_())
     assert torch.autograd.gradcheck(render, inputs, eps=1e-6, atol=1e-5, rtol=1e-4, fast_mode=True)
 
 
-def test_constant_opaque_primitive_renders_its_colour():
+@KERNELS
+def test_constant_opaque_primitive_renders_its_colour(kernel):
     m = 4
     colour = torch.tensor([0.2, 0.5, 0.9])
     prims = Primitives(centre=torch.zeros(1, 1, 3), rotation=torch.eye(3).expand(1, 1, 3, 3).clone(),
@@ -89,19 +100,20 @@ def test_constant_opaque_primitive_renders_its_colour():
                        density=torch.full((1, 1, m, m, m), 1e4))
     origins = torch.tensor([[[0.0, 0.0, -1.0], [0.05, -0.03, -1.0], [0.3, 0.0, -1.0]]])
     dirs = torch.tensor([[[0.0, 0.0, 1.0]] * 3])
-    for fn in (raymarch, raymarch_reference):
-        res = fn(prims, origins, dirs, steps=16)
+    for res in (raymarch(prims, origins, dirs, steps=16, kernel=kernel), raymarch_reference(prims, origins, dirs, 16)):
         torch.testing.assert_close(res.rgb[0, :2], colour.expand(2, 3), rtol=1e-5, atol=1e-5)
         torch.testing.assert_close(res.alpha[0, :2], torch.ones(2))
         assert float(res.alpha[0, 2]) == 0.0 and float(res.rgb[0, 2].abs().sum()) == 0.0  # misses the box
 
 
-def test_colour_is_linear_for_fixed_opacity():
+@KERNELS
+def test_colour_is_linear_for_fixed_opacity(kernel):
     """The basis of the voxel-space light sum: render(rgb1 + rgb2) = render(rgb1) + render(rgb2)."""
     prims, o, d = _scene(density=6.0)
     rgb2 = torch.rand_like(prims.rgb)
-    both = raymarch(prims.with_rgb(prims.rgb + 0.5 * rgb2), o, d, steps=16).rgb
-    apart = raymarch(prims, o, d, steps=16).rgb + 0.5 * raymarch(prims.with_rgb(rgb2), o, d, steps=16).rgb
+    both = raymarch(prims.with_rgb(prims.rgb + 0.5 * rgb2), o, d, steps=16, kernel=kernel).rgb
+    apart = (raymarch(prims, o, d, steps=16, kernel=kernel).rgb
+             + 0.5 * raymarch(prims.with_rgb(rgb2), o, d, steps=16, kernel=kernel).rgb)
     torch.testing.assert_close(both, apart)
 
 
@@ -114,3 +126,51 @@ def test_gpu_fast_path_matches_cpu_reference():
     fast = raymarch(cuda, o.cuda(), d.cuda(), steps=24)
     torch.testing.assert_close(fast.rgb.cpu(), ref.rgb, rtol=1e-4, atol=1e-5)
     torch.testing.assert_close(fast.alpha.cpu(), ref.alpha, rtol=1e-4, atol=1e-5)
+
+
+def test_fused_and_tensor_paths_agree_in_float32_and_on_misses_and_empty_rays():
+    prims, o, d = _scene(b=3, p=20, m=5, r=200, density=8.0, seed=5, dtype=torch.float32)
+    o[1, :50] = torch.tensor([0.0, 5.0, -3.0])  # these rays miss every box: black, transparent, no gradient
+    leaves = [x.requires_grad_() for x in (prims.rgb, prims.density, prims.centre, prims.half_extent)]
+    a = raymarch(prims, o, d, steps=32, kernel="fused")
+    b = raymarch(prims, o, d, steps=32, kernel="torch")
+    assert float(a.alpha.detach()[1, :50].abs().max()) == 0.0 and float(a.rgb.detach()[1, :50].abs().max()) == 0.0
+    torch.testing.assert_close(a.rgb, b.rgb, rtol=1e-5, atol=1e-5)
+    torch.testing.assert_close(a.alpha, b.alpha, rtol=1e-5, atol=1e-5)
+    w = torch.rand_like(a.rgb)
+    g_a = torch.autograd.grad((a.rgb * w).sum() + a.alpha.sum(), leaves)
+    g_b = torch.autograd.grad((b.rgb * w).sum() + b.alpha.sum(), leaves)
+    for x, y in zip(g_a, g_b):
+        torch.testing.assert_close(x, y, rtol=1e-4, atol=1e-4 * float(y.abs().max()))
+
+
+def test_fused_prim_stats_match_the_tensor_path():
+    prims, o, d = _scene(density=6.0)
+    a = raymarch(prims, o, d, steps=24, kernel="fused", prim_stats=True)
+    b = raymarch(prims, o, d, steps=24, kernel="torch", prim_stats=True)
+    assert (b.prim_alpha > 0.999).any() and (b.prim_alpha == 0).any()
+    torch.testing.assert_close(a.prim_alpha, b.prim_alpha, rtol=1e-9, atol=1e-12)
+
+
+def test_auto_falls_back_to_tensor_ops_when_the_kernel_cannot_be_built(monkeypatch, caplog):
+    def no_compiler():
+        raise RuntimeError("Error building extension: c++: command not found")
+
+    monkeypatch.setattr(fused, "_module", None)
+    monkeypatch.setattr(fused, "_build_error", None)
+    monkeypatch.setattr(fused, "_build", no_compiler)
+    prims, o, d = _scene()
+    with caplog.at_level("WARNING"):
+        res = raymarch(prims, o, d, steps=16, kernel="auto")
+        raymarch(prims, o, d, steps=16, kernel="auto")
+    warnings = [r for r in caplog.records if "fused raymarcher unavailable" in r.getMessage()]
+    assert len(warnings) == 1 and "c++: command not found" in warnings[0].getMessage()  # once per process
+    torch.testing.assert_close(res.rgb, raymarch(prims, o, d, steps=16, kernel="torch").rgb)
+    with pytest.raises(fused.FusedKernelUnavailable, match="apt-get install g\\+\\+"):
+        raymarch(prims, o, d, steps=16, kernel="fused")
+
+
+def test_unknown_kernel_is_refused():
+    prims, o, d = _scene()
+    with pytest.raises(ValueError, match="'cuda' is not one of auto, fused, torch"):
+        raymarch(prims, o, d, steps=16, kernel="cuda")
