@@ -359,8 +359,11 @@ std::vector<torch::Tensor> candidates(torch::Tensor rays_o, torch::Tensor rays_d
           all_far.narrow(1, 0, k).contiguous(), t_min, t_max};
 }
 
+// The GIL is released while a kernel runs: two models trained side by side in two threads
+// (stages/train/side_by_side.py) then overlap here as they do in torch's own kernels.
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, module) {
-  module.def("forward", &forward, "fused raymarch, forward");
-  module.def("backward", &backward, "fused raymarch, backward");
-  module.def("candidates", &candidates, "the boxes each ray hits (slab test)");
+  using release = pybind11::call_guard<pybind11::gil_scoped_release>;
+  module.def("forward", &forward, "fused raymarch, forward", release());
+  module.def("backward", &backward, "fused raymarch, backward", release());
+  module.def("candidates", &candidates, "the boxes each ray hits (slab test)", release());
 }

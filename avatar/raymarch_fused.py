@@ -16,6 +16,8 @@ and ``"fused"`` raises ``FusedKernelUnavailable`` saying what to install.
 from __future__ import annotations
 
 import logging
+import os
+import shutil
 import threading
 from pathlib import Path
 
@@ -37,7 +39,20 @@ class FusedKernelUnavailable(RuntimeError):
 def _build():
     from torch.utils import cpp_extension
 
-    return cpp_extension.load(name=EXTENSION_NAME, sources=[str(SOURCE)], extra_cflags=["-O3"], verbose=False)
+    path = os.environ.get("PATH", "")
+    if shutil.which("ninja") is None:
+        # torch runs `ninja` from PATH; the pip package's binary is not on it when the venv's
+        # python runs without the venv activated (as `make` does).
+        try:
+            import ninja
+
+            os.environ["PATH"] = ninja.BIN_DIR + os.pathsep + path
+        except ImportError:
+            pass
+    try:
+        return cpp_extension.load(name=EXTENSION_NAME, sources=[str(SOURCE)], extra_cflags=["-O3"], verbose=False)
+    finally:
+        os.environ["PATH"] = path
 
 
 def fused_module(required: bool):
@@ -53,9 +68,9 @@ def fused_module(required: bool):
                 _module = _build()
             except Exception as error:  # a missing compiler shows up as several exception types
                 _build_error = f"{type(error).__name__}: {error}".strip()
-                log.warning("fused raymarcher unavailable (%s); using the PyTorch raymarcher, "
-                            "~3-5x slower on the CPU. Install a C++ compiler (e.g. apt-get install g++) "
-                            "to build it.", _build_error.splitlines()[0])
+                log.warning("fused raymarcher unavailable (%s); using the PyTorch raymarcher, the training "
+                            "step ~2x slower on the CPU. Install a C++ compiler (e.g. apt-get install g++) to "
+                            "build it.", _build_error.splitlines()[0])
     if _module is None and required:
         raise FusedKernelUnavailable(
             f"the fused raymarcher ({SOURCE.name}) could not be built: {_build_error}. Install a C++ "

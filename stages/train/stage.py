@@ -111,10 +111,10 @@ class TrainParams(StageParams):
     seed: int = Field(0, description="Seed of initialisation and sampling.")
     threads: int = Field(0, ge=0, description="torch CPU threads (0 = torch's default).")
     device: str = Field("auto", description="'auto' (CUDA if present), 'cpu' or 'cuda'.")
-    raymarch_kernel: RaymarchKernel = Field("auto", description="'fused': the C++ CPU raymarcher (avatar.raymarch_fused, "
-                                            "built on first use; ~2.4x the training iterations/s of 'torch' on the "
-                                            "tiny head); 'torch': tensor ops (CPU or GPU); 'auto': fused on the CPU "
-                                            "where a C++ compiler builds it, else torch. Same images either way.")
+    raymarch_kernel: RaymarchKernel = Field(
+        "auto", description="'fused': the C++ CPU raymarcher (avatar.raymarch_fused, built on first use; ~2x the "
+        "training iterations/s of 'torch' on the tiny head); 'torch': tensor ops (CPU or GPU); 'auto': fused on the "
+        "CPU where a C++ compiler builds it, else torch. The same images either way, up to float rounding.")
     previews: int = Field(2, ge=0, description="Preview images written per split.")
     parallel_models: int = Field(1, ge=1, description="Models (ours, TRAvatar*) trained at the same time, each in its "
                                  "own thread of this process: 2 trains both side by side, in about the time of one "

@@ -34,7 +34,6 @@ def _rays_at(xs: list[float], y: float = 0.0) -> tuple[torch.Tensor, torch.Tenso
     return o, d
 
 
-@pytest.mark.parametrize("kernel", ["torch", "fused"])
 def test_prim_alpha_is_the_opacity_a_primitive_adds(kernel):
     prims = _row_of_boxes([2.0, 0.0, 2.0])  # the middle box is empty
     o, d = _rays_at([0.0, 0.5, 1.0, 0.05])
@@ -48,7 +47,6 @@ def test_prim_alpha_is_the_opacity_a_primitive_adds(kernel):
     assert float(res.prim_alpha[0, 0]) > 0.3
 
 
-@pytest.mark.parametrize("kernel", ["torch", "fused"])
 def test_prim_alpha_ignores_boxes_behind_an_opaque_one_and_survives_chunking(kernel):
     prims = _row_of_boxes([200.0, 1.0])
     prims.centre[0, 1] = torch.tensor([0.0, 0.0, -0.5], dtype=torch.float64)  # behind box 0 along the rays

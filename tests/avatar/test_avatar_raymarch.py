@@ -10,9 +10,6 @@ from scipy.spatial.transform import Rotation
 import avatar.raymarch_fused as fused
 from avatar.raymarch import Primitives, raymarch, raymarch_reference
 
-# Every fast-path test runs on both CPU fast paths.
-KERNELS = pytest.mark.parametrize("kernel", ["torch", "fused"])
-
 
 def _scene(b: int = 2, p: int = 6, m: int = 4, r: int = 40, density: float = 3.0, seed: int = 0,
            dtype=torch.float64) -> tuple[Primitives, torch.Tensor, torch.Tensor]:
@@ -30,7 +27,6 @@ def _scene(b: int = 2, p: int = 6, m: int = 4, r: int = 40, density: float = 3.0
     return Primitives(centre, rot, half, rgb, den), origins, dirs
 
 
-@KERNELS
 def test_fast_path_matches_reference_forward_and_backward(kernel):
     prims, o, d = _scene(density=6.0)  # dense enough that many rays saturate (early termination)
     leaves = [prims.rgb.requires_grad_(), prims.density.requires_grad_(), prims.centre.requires_grad_(),
@@ -47,7 +43,6 @@ def test_fast_path_matches_reference_forward_and_backward(kernel):
         torch.testing.assert_close(a, b, rtol=1e-7, atol=1e-9)
 
 
-@KERNELS
 def test_chunked_rays_match_unchunked(kernel):
     prims, o, d = _scene()
     whole = raymarch(prims, o, d, steps=16, kernel=kernel)
@@ -55,7 +50,6 @@ def test_chunked_rays_match_unchunked(kernel):
     torch.testing.assert_close(whole.rgb, chunked.rgb)
 
 
-@KERNELS
 def test_gradients_match_finite_differences(kernel):
     # Low density: no ray saturates, so the image is smooth in every input.
     prims, o, d = _scene(b=1, p=3, m=3, r=12, density=0.5, seed=3)
@@ -69,7 +63,6 @@ def test_gradients_match_finite_differences(kernel):
     assert torch.autograd.gradcheck(render, inputs, eps=1e-6, atol=1e-5, rtol=1e-4, fast_mode=True)
 
 
-@KERNELS
 def test_geometry_gradients_match_finite_differences(kernel):
     # Sample placement is not differentiated (as in MVP): the ray's span comes from the boxes
     # it hits. Add a large empty box around everything so the span, and hence the samples,
@@ -91,7 +84,6 @@ def test_geometry_gradients_match_finite_differences(kernel):
     assert torch.autograd.gradcheck(render, inputs, eps=1e-6, atol=1e-5, rtol=1e-4, fast_mode=True)
 
 
-@KERNELS
 def test_constant_opaque_primitive_renders_its_colour(kernel):
     m = 4
     colour = torch.tensor([0.2, 0.5, 0.9])
@@ -106,7 +98,6 @@ def test_constant_opaque_primitive_renders_its_colour(kernel):
         assert float(res.alpha[0, 2]) == 0.0 and float(res.rgb[0, 2].abs().sum()) == 0.0  # misses the box
 
 
-@KERNELS
 def test_colour_is_linear_for_fixed_opacity(kernel):
     """The basis of the voxel-space light sum: render(rgb1 + rgb2) = render(rgb1) + render(rgb2)."""
     prims, o, d = _scene(density=6.0)
@@ -128,11 +119,11 @@ def test_gpu_fast_path_matches_cpu_reference():
     torch.testing.assert_close(fast.alpha.cpu(), ref.alpha, rtol=1e-4, atol=1e-5)
 
 
-def test_fused_and_tensor_paths_agree_in_float32_and_on_misses_and_empty_rays():
+def test_fused_and_tensor_paths_agree_in_float32_and_on_misses_and_empty_rays(fused_kernel):
     prims, o, d = _scene(b=3, p=20, m=5, r=200, density=8.0, seed=5, dtype=torch.float32)
     o[1, :50] = torch.tensor([0.0, 5.0, -3.0])  # these rays miss every box: black, transparent, no gradient
     leaves = [x.requires_grad_() for x in (prims.rgb, prims.density, prims.centre, prims.half_extent)]
-    a = raymarch(prims, o, d, steps=32, kernel="fused")
+    a = raymarch(prims, o, d, steps=32, kernel=fused_kernel)
     b = raymarch(prims, o, d, steps=32, kernel="torch")
     assert float(a.alpha.detach()[1, :50].abs().max()) == 0.0 and float(a.rgb.detach()[1, :50].abs().max()) == 0.0
     torch.testing.assert_close(a.rgb, b.rgb, rtol=1e-5, atol=1e-5)
@@ -144,9 +135,9 @@ def test_fused_and_tensor_paths_agree_in_float32_and_on_misses_and_empty_rays():
         torch.testing.assert_close(x, y, rtol=1e-4, atol=1e-4 * float(y.abs().max()))
 
 
-def test_fused_prim_stats_match_the_tensor_path():
+def test_fused_prim_stats_match_the_tensor_path(fused_kernel):
     prims, o, d = _scene(density=6.0)
-    a = raymarch(prims, o, d, steps=24, kernel="fused", prim_stats=True)
+    a = raymarch(prims, o, d, steps=24, kernel=fused_kernel, prim_stats=True)
     b = raymarch(prims, o, d, steps=24, kernel="torch", prim_stats=True)
     assert (b.prim_alpha > 0.999).any() and (b.prim_alpha == 0).any()
     torch.testing.assert_close(a.prim_alpha, b.prim_alpha, rtol=1e-9, atol=1e-12)

@@ -169,6 +169,37 @@ def test_side_by_side_needs_one_process(capture, tmp_path):
         run_stage_for_test(STAGE, tmp_path, capture, {**BASE, "iterations": 2, "processes": 2, "parallel_models": 2})
 
 
+def test_the_raymarch_kernels_train_the_same_model(capture, tmp_path, caplog):
+    import avatar.raymarch_fused as fused
+
+    if fused.fused_module(required=False) is None:
+        pytest.skip("the fused raymarcher cannot be built here (no C++ compiler)")
+    runs = {}
+    for kernel in ("torch", "fused"):
+        params = {**BASE, "iterations": 8, "baseline": False, "raymarch_kernel": kernel}
+        with caplog.at_level(logging.INFO):
+            runs[kernel] = run_stage_for_test(STAGE, tmp_path / kernel, capture, params)
+    assert "raymarcher: torch (train.raymarch_kernel=torch)" in caplog.text
+    assert "raymarcher: fused (train.raymarch_kernel=fused)" in caplog.text
+    metrics = {k: json.loads((out / "metrics.json").read_text()) for k, out in runs.items()}
+    for split in SPLITS:  # the same model up to float rounding: the same held-out figures
+        assert metrics["fused"][f"ours_{split}_psnr"] == pytest.approx(metrics["torch"][f"ours_{split}_psnr"], abs=0.02)
+
+
+def test_fused_kernel_without_a_compiler_is_a_config_error(capture, tmp_path, monkeypatch):
+    import avatar.raymarch_fused as fused
+    from pipeline.errors import ConfigError
+
+    def no_compiler():
+        raise RuntimeError("Error building extension: c++: command not found")
+
+    monkeypatch.setattr(fused, "_module", None)
+    monkeypatch.setattr(fused, "_build_error", None)
+    monkeypatch.setattr(fused, "_build", no_compiler)
+    with pytest.raises(ConfigError, match="train.raymarch_kernel=fused: .*apt-get install g"):
+        run_stage_for_test(STAGE, tmp_path, capture, {**BASE, "iterations": 2, "raymarch_kernel": "fused"})
+
+
 def test_few_iterations_lower_the_loss(capture, tmp_path):
     from stages.train.data import load_train_data
 
