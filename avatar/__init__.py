@@ -2,7 +2,8 @@
 
 Modules: ``config`` (sizes; ``AvatarConfig.tiny()`` / ``.paper()``), ``layout`` (primitive
 anchors on the guide mesh), ``model`` (encoder, geometry / appearance / opacity branches),
-``raymarch`` (fast path + slow reference), ``travatar`` (the TRAvatar* baseline), ``io``
+``raymarch`` (fast paths + slow reference; on the CPU the fused C++ kernel of
+``raymarch_fused``, built on first use), ``travatar`` (the TRAvatar* baseline), ``io``
 (save / load), ``metrics`` and ``lpips`` (evaluation).
 
 Usage (stable API; all positions in head space, metres; images linear RGB)::
