@@ -70,20 +70,38 @@ inline void lookup(const scalar_t* table, int64_t base, int64_t m, const scalar_
       }
 }
 
+// One ray's K candidate boxes: where the ray enters and leaves each, and the ray in its frame.
+template <typename scalar_t>
+struct RayBoxes {
+  const int64_t* base;  // [K] table row of the box's voxel (0, 0, 0), -1 for an empty slot
+  const scalar_t *near, *far;  // [K]
+  const scalar_t *o, *d;  // [K, 3]
+
+  RayBoxes(const int64_t* base_all, const scalar_t* near_all, const scalar_t* far_all, const scalar_t* o_all,
+           const scalar_t* d_all, int64_t ray, int64_t k)
+      : base(base_all + ray * k), near(near_all + ray * k), far(far_all + ray * k), o(o_all + ray * k * 3),
+        d(d_all + ray * k * 3) {}
+
+  // Whether the sample at distance ts lies in box ki (the PyTorch path's test); if so, y = its local position.
+  inline bool sample_in(int64_t ki, scalar_t ts, scalar_t y[3]) const {
+    if (base[ki] < 0 || ts < near[ki] || ts > far[ki]) return false;
+    for (int a = 0; a < 3; ++a) y[a] = o[ki * 3 + a] + ts * d[ki * 3 + a];
+    return true;
+  }
+};
+
 // Per-sample density and density-weighted colour of one ray, summed over the boxes its sample is in.
 template <typename scalar_t>
-void march_samples(const scalar_t* table, const int64_t* base, const scalar_t* near, const scalar_t* far,
-                   const scalar_t* o, const scalar_t* d, const scalar_t* t, int64_t k, int64_t s, int64_t m,
-                   scalar_t* sigma, scalar_t* sigma_rgb) {
+void march_samples(const scalar_t* table, const RayBoxes<scalar_t>& boxes, const scalar_t* t, int64_t k, int64_t s,
+                   int64_t m, scalar_t* sigma, scalar_t* sigma_rgb) {
   Lookup<scalar_t> lk;
+  scalar_t y[3];
   for (int64_t si = 0; si < s; ++si) {
     scalar_t sg = 0, cr = 0, cg = 0, cb = 0;
     const scalar_t ts = t[si];
     for (int64_t ki = 0; ki < k; ++ki) {
-      if (base[ki] < 0 || ts < near[ki] || ts > far[ki]) continue;
-      const scalar_t y[3] = {o[ki * 3] + ts * d[ki * 3], o[ki * 3 + 1] + ts * d[ki * 3 + 1],
-                             o[ki * 3 + 2] + ts * d[ki * 3 + 2]};
-      lookup(table, base[ki], m, y, lk);
+      if (!boxes.sample_in(ki, ts, y)) continue;
+      lookup(table, boxes.base[ki], m, y, lk);
       const scalar_t sk = lk.rgba[3];
       sg += sk;
       cr += lk.rgba[0] * sk;
@@ -129,7 +147,6 @@ std::vector<torch::Tensor> forward(torch::Tensor table, torch::Tensor base, torc
   AT_DISPATCH_FLOATING_TYPES(table.scalar_type(), "fused_raymarch_forward", [&] {
     const scalar_t* tab = table.data_ptr<scalar_t>();
     const int64_t* base_p = base.data_ptr<int64_t>();
-    auto bs_all = [&](int64_t ri) { return base_p + ri * k; };
     const scalar_t *nr_p = near.data_ptr<scalar_t>(), *fr_p = far.data_ptr<scalar_t>();
     const scalar_t *op = o.data_ptr<scalar_t>(), *dp = d.data_ptr<scalar_t>();
     const scalar_t *tp = t.data_ptr<scalar_t>(), *dtp = dt.data_ptr<scalar_t>();
@@ -139,11 +156,12 @@ std::vector<torch::Tensor> forward(torch::Tensor table, torch::Tensor base, torc
     at::parallel_for(0, r, 64, [&](int64_t begin, int64_t end) {
       std::vector<scalar_t> shares(with_added ? s : 0);
       Lookup<scalar_t> lk;
+      scalar_t y[3];
       for (int64_t ri = begin; ri < end; ++ri) {
+        const RayBoxes<scalar_t> boxes(base_p, nr_p, fr_p, op, dp, ri, k);
         scalar_t* sg = sig_p + ri * s;
         scalar_t* sc = srgb_p + ri * s * 3;
-        march_samples(tab, bs_all(ri), nr_p + ri * k, fr_p + ri * k, op + ri * k * 3, dp + ri * k * 3, tp + ri * s,
-                      k, s, m, sg, sc);
+        march_samples(tab, boxes, tp + ri * s, k, s, m, sg, sc);
         // MVP's additive compositing: a sample counts with the share of its opacity still below 1.
         const scalar_t step = dtp[ri];
         scalar_t acc = 0, cr = 0, cg = 0, cb = 0;
@@ -164,17 +182,13 @@ std::vector<torch::Tensor> forward(torch::Tensor table, torch::Tensor base, torc
         alpha_p[ri] = std::min(acc, scalar_t(1));
         if (!with_added) continue;
         // Second pass over the pairs: each box's density times the share of the sample it is in.
-        const int64_t* bs = bs_all(ri);
-        const scalar_t *nr = nr_p + ri * k, *fr = fr_p + ri * k, *o_r = op + ri * k * 3, *d_r = dp + ri * k * 3;
         const scalar_t* t_r = tp + ri * s;
         scalar_t* add_r = added_p + ri * k;
         for (int64_t si = 0; si < s; ++si) {
           const scalar_t ts = t_r[si];
           for (int64_t ki = 0; ki < k; ++ki) {
-            if (bs[ki] < 0 || ts < nr[ki] || ts > fr[ki]) continue;
-            const scalar_t y[3] = {o_r[ki * 3] + ts * d_r[ki * 3], o_r[ki * 3 + 1] + ts * d_r[ki * 3 + 1],
-                                   o_r[ki * 3 + 2] + ts * d_r[ki * 3 + 2]};
-            lookup(tab, bs[ki], m, y, lk);
+            if (!boxes.sample_in(ki, ts, y)) continue;
+            lookup(tab, boxes.base[ki], m, y, lk);
             add_r[ki] += lk.rgba[3] * step * shares[si];
           }
         }
@@ -235,19 +249,16 @@ std::vector<torch::Tensor> backward(torch::Tensor grad_rgb, torch::Tensor grad_a
         g_sigma[si] = (g_op_own + later + g_acc) * step;
         later += -g_q / denom;
       }
-      const int64_t* bs = bs_all + ri * k;
-      const scalar_t *nr = nr_all + ri * k, *fr = fr_all + ri * k;
-      const scalar_t *op = op_all + ri * k * 3, *dp = dp_all + ri * k * 3;
+      const RayBoxes<scalar_t> boxes(bs_all, nr_all, fr_all, op_all, dp_all, ri, k);
       scalar_t *g_o = g_o_all + ri * k * 3, *g_d = g_d_all + ri * k * 3;
       const scalar_t* tp = tp_all + ri * s;
+      scalar_t y[3];
       for (int64_t si = 0; si < s; ++si) {
         const scalar_t ts = tp[si];
         const scalar_t* gc = g_c.data() + si * 3;
         for (int64_t ki = 0; ki < k; ++ki) {
-          if (bs[ki] < 0 || ts < nr[ki] || ts > fr[ki]) continue;
-          const scalar_t y[3] = {op[ki * 3] + ts * dp[ki * 3], op[ki * 3 + 1] + ts * dp[ki * 3 + 1],
-                                 op[ki * 3 + 2] + ts * dp[ki * 3 + 2]};
-          lookup(tab, bs[ki], m, y, lk);
+          if (!boxes.sample_in(ki, ts, y)) continue;
+          lookup(tab, boxes.base[ki], m, y, lk);
           const scalar_t sk = lk.rgba[3];
           // sigma_rgb += rgb_k * sigma_k and sigma += sigma_k.
           const scalar_t g_rgba[4] = {gc[0] * sk, gc[1] * sk, gc[2] * sk,

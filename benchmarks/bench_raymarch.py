@@ -26,7 +26,7 @@ from avatar.model import RelightableMVP
 from avatar.raymarch import Primitives, raymarch
 from avatar.raymarch_fused import fused_module
 from benchmarks.bench_train import _tensors, _trainer
-from stages.train.trainer import Renderer
+from stages.train.trainer import Renderer, TrainTensors
 
 KERNELS = ("torch", "fused")
 
@@ -54,14 +54,19 @@ def _median_seconds(fn, repeats: int) -> float:
     return statistics.median(times)
 
 
-def _tiny_scene(batch: int) -> tuple[Primitives, torch.Tensor, AvatarConfig, object]:
-    """The tiny head's primitives for ``batch`` frames, and the rig's training tensors."""
+def _tiny_model() -> tuple[AvatarConfig, TrainTensors, RelightableMVP]:
+    """The tiny head at initialisation on the ICT face, and the rig's training tensors (2 frames)."""
     config = AvatarConfig.tiny()
     t, verts, tris = _tensors(64, 2, torch.device("cpu"))
     layout = layout_for(config, verts, tris)
     t.guide_vertices = torch.as_tensor(verts[layout.guide_vertex_ids])[None].expand(2, -1, -1).contiguous()
     torch.manual_seed(0)
-    model = RelightableMVP(config, layout, num_bars=1)
+    return config, t, RelightableMVP(config, layout, num_bars=1)
+
+
+def _tiny_scene(batch: int) -> tuple[Primitives, TrainTensors, AvatarConfig]:
+    """The tiny head's primitives for ``batch`` frames, the rig's training tensors and the head's config."""
+    config, t, model = _tiny_model()
     with torch.no_grad():
         mu, _ = model.encode(t.guide_vertices[:1].expand(batch, -1, -1))
         geo = model.decode_geometry(mu)
@@ -69,7 +74,7 @@ def _tiny_scene(batch: int) -> tuple[Primitives, torch.Tensor, AvatarConfig, obj
     prims = geo.primitives(rgb)
     leaves = Primitives(*(x.detach().clone() for x in (prims.centre, prims.rotation, prims.half_extent,
                                                         prims.rgb, prims.density)))
-    return leaves, t, config, model
+    return leaves, t, config
 
 
 def _rays(t, batch: int, rays_per_image: int, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
@@ -113,12 +118,7 @@ def _training_rates(batch: int, rays: int, iterations: int) -> dict[str, float]:
     """Tiny training iterations per second, the whole step (encoder, decoders, raymarch, Adam), per kernel."""
     rates = {}
     for kernel in KERNELS:
-        config = AvatarConfig.tiny()
-        t, verts, tris = _tensors(64, 2, torch.device("cpu"))
-        layout = layout_for(config, verts, tris)
-        t.guide_vertices = torch.as_tensor(verts[layout.guide_vertex_ids])[None].expand(2, -1, -1).contiguous()
-        torch.manual_seed(0)
-        model = RelightableMVP(config, layout, num_bars=1)
+        _, t, model = _tiny_model()
         tr = _trainer(Renderer(model, "ours", None, [0], kernel=kernel), t, iterations, batch, rays,
                       Path("/nonexistent"))
         rates[kernel] = 1.0 / _median_seconds(tr.step, iterations)
@@ -134,7 +134,7 @@ def main() -> dict:
     results: dict = {"build_or_load_seconds": time.perf_counter() - start, "threads": 1}
     preset = tiny_train_params()
     batch, rays = int(preset["batch_size"]), int(preset["rays_per_image"])
-    prims, t, config, _ = _tiny_scene(batch)
+    prims, t, config = _tiny_scene(batch)
     results["batches"] = []
     for scale in (1, 4, 16):
         ro, rd = _rays(t, batch, rays * scale)

@@ -27,6 +27,11 @@ def _scene(b: int = 2, p: int = 6, m: int = 4, r: int = 40, density: float = 3.0
     return Primitives(centre, rot, half, rgb, den), origins, dirs
 
 
+def _gradients(res, weights: torch.Tensor, leaves: list[torch.Tensor]) -> tuple[torch.Tensor, ...]:
+    """Gradients of a weighted sum of a render's colour, plus its opacity, with respect to ``leaves``."""
+    return torch.autograd.grad((res.rgb * weights).sum() + res.alpha.sum(), leaves)
+
+
 def test_fast_path_matches_reference_forward_and_backward(kernel):
     prims, o, d = _scene(density=6.0)  # dense enough that many rays saturate (early termination)
     leaves = [prims.rgb.requires_grad_(), prims.density.requires_grad_(), prims.centre.requires_grad_(),
@@ -37,9 +42,7 @@ def test_fast_path_matches_reference_forward_and_backward(kernel):
     torch.testing.assert_close(fast.rgb, ref.rgb, rtol=1e-9, atol=1e-10)
     torch.testing.assert_close(fast.alpha, ref.alpha, rtol=1e-9, atol=1e-10)
     w = torch.rand_like(fast.rgb)
-    g_fast = torch.autograd.grad((fast.rgb * w).sum() + fast.alpha.sum(), leaves)
-    g_ref = torch.autograd.grad((ref.rgb * w).sum() + ref.alpha.sum(), leaves)
-    for a, b in zip(g_fast, g_ref):
+    for a, b in zip(_gradients(fast, w, leaves), _gradients(ref, w, leaves)):
         torch.testing.assert_close(a, b, rtol=1e-7, atol=1e-9)
 
 
@@ -129,9 +132,7 @@ def test_fused_and_tensor_paths_agree_in_float32_and_on_misses_and_empty_rays(fu
     torch.testing.assert_close(a.rgb, b.rgb, rtol=1e-5, atol=1e-5)
     torch.testing.assert_close(a.alpha, b.alpha, rtol=1e-5, atol=1e-5)
     w = torch.rand_like(a.rgb)
-    g_a = torch.autograd.grad((a.rgb * w).sum() + a.alpha.sum(), leaves)
-    g_b = torch.autograd.grad((b.rgb * w).sum() + b.alpha.sum(), leaves)
-    for x, y in zip(g_a, g_b):
+    for x, y in zip(_gradients(a, w, leaves), _gradients(b, w, leaves)):
         torch.testing.assert_close(x, y, rtol=1e-4, atol=1e-4 * float(y.abs().max()))
 
 
