@@ -6,7 +6,7 @@ compare the two forward and backward, and against the slow reference), at a frac
 the time and memory: no (sample, primitive) pair tensors are built.
 
 The C++ source is compiled with ``torch.utils.cpp_extension.load`` the first time a process
-needs it (about a minute on 2 cores; needs a C++ compiler) and cached under
+needs it (~20 s on 2 cores; needs a C++ compiler) and cached under
 ``$TORCH_EXTENSIONS_DIR`` (default ``~/.cache/torch_extensions``); later processes load the
 cached build in well under a second, and concurrent processes share one build (torch takes
 a file lock). Without a compiler, ``"auto"`` falls back to the PyTorch path with one warning
