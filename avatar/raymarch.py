@@ -157,18 +157,24 @@ RaymarchKernel = Literal["auto", "fused", "torch"]
 KERNELS: tuple[str, ...] = get_args(RaymarchKernel)
 
 
-def _use_fused(kernel: RaymarchKernel, voxels: torch.Tensor) -> bool:
-    """Whether this call runs the fused CPU kernel (``"fused"`` insists: it raises where it cannot)."""
+def resolve_kernel(kernel: RaymarchKernel, device: torch.device, dtype: torch.dtype) -> Literal["fused", "torch"]:
+    """The raymarcher ``kernel`` runs on tensors of ``device`` and ``dtype`` (building the fused one if needed).
+
+    ``"fused"`` insists: ``ValueError`` where it does not apply, ``FusedKernelUnavailable``
+    where it cannot be built. ``"auto"`` picks it where it applies and builds.
+    """
+    if kernel not in KERNELS:
+        raise ValueError(f"raymarch kernel {kernel!r} is not one of {', '.join(KERNELS)}")
     if kernel == "torch":
-        return False
-    applies = voxels.device.type == "cpu" and voxels.dtype in (torch.float32, torch.float64)
+        return "torch"
+    applies = device.type == "cpu" and dtype in (torch.float32, torch.float64)
     if kernel == "fused":
         if not applies:
             raise ValueError("the fused raymarcher takes CPU float32 or float64 tensors; "
-                             f"got {voxels.device.type} {voxels.dtype}: use kernel='auto' or 'torch'")
+                             f"got {device.type} {dtype}: use kernel='auto' or 'torch'")
         fused_module(required=True)
-        return True
-    return applies and fused_module(required=False) is not None
+        return "fused"
+    return "fused" if applies and fused_module(required=False) is not None else "torch"
 
 
 _CORNERS = torch.tensor([[dx, dy, dz] for dz in (0, 1) for dy in (0, 1) for dx in (0, 1)])  # [8, 3] (x, y, z)
@@ -212,8 +218,6 @@ def raymarch(prims: Primitives, rays_o: torch.Tensor, rays_d: torch.Tensor, step
     ``"torch"`` tensor ops (CPU or GPU), ``"auto"`` the fused kernel where it applies and builds
     (CPU float tensors), tensor ops otherwise. All give the same images and gradients.
     """
-    if kernel not in KERNELS:
-        raise ValueError(f"raymarch kernel {kernel!r} is not one of {', '.join(KERNELS)}")
     b, r, _ = rays_o.shape
     p = prims.centre.shape[1]
     chunk = max(1, min(r, max_pairs // max(1, b * p)))
@@ -224,7 +228,7 @@ def raymarch(prims: Primitives, rays_o: torch.Tensor, rays_d: torch.Tensor, step
         prim_alpha = torch.stack([x.prim_alpha for x in parts]).amax(0) if prim_stats else None
         return RenderResult(torch.cat([x.rgb for x in parts], 1), torch.cat([x.alpha for x in parts], 1),
                             prim_alpha)
-    if _use_fused(kernel, prims.density):
+    if resolve_kernel(kernel, prims.density.device, prims.density.dtype) == "fused":
         return _raymarch_fused(prims, rays_o, rays_d, steps, prim_stats)
     m = prims.voxels_per_side
     hit, t_near, t_far = box_intervals(prims, rays_o, rays_d)

@@ -44,8 +44,8 @@ from avatar.config import AvatarConfig
 from avatar.layout import layout_for
 from avatar.io import save_trained
 from avatar.model import RelightableMVP, count_parameters
-from avatar.raymarch import RaymarchKernel
-from avatar.raymarch_fused import FusedKernelUnavailable, fused_module
+from avatar.raymarch import RaymarchKernel, resolve_kernel
+from avatar.raymarch_fused import FusedKernelUnavailable
 from avatar.travatar import LightBasis
 from pipeline.errors import ConfigError, InputError
 from pipeline.stage import Stage, StageContext, StageParams
@@ -135,15 +135,10 @@ def _device(name: str) -> torch.device:
 
 def _raymarch_kernel(name: RaymarchKernel, device: torch.device) -> RaymarchKernel:
     """The raymarcher this run uses, built now (not in the first iteration, whose time it would skew)."""
-    if name == "torch" or (name == "auto" and device.type != "cpu"):
-        return "torch"
-    if device.type != "cpu":
-        raise ConfigError(f"train.raymarch_kernel=fused runs on the CPU, not on {device.type}: "
-                          "set train.raymarch_kernel: auto (or device: cpu)")
     try:
-        return "fused" if fused_module(required=name == "fused") is not None else "torch"
-    except FusedKernelUnavailable as error:
-        raise ConfigError(f"train.raymarch_kernel=fused: {error}") from error
+        return resolve_kernel(name, device, torch.float32)
+    except (ValueError, FusedKernelUnavailable) as error:
+        raise ConfigError(f"train.raymarch_kernel={name}: {error}") from error
 
 
 def _run_key(params: TrainParams, inputs: dict[str, Path]) -> str:
