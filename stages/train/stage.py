@@ -51,7 +51,7 @@ from pipeline.errors import ConfigError, InputError
 from pipeline.stage import Stage, StageContext, StageParams
 from stages.train.data import TrainData, load_train_data
 from stages.train.evaluate import (SCALED_SPLITS, coverage_metrics, curve_png, eval_pairs, image_metrics,
-                                   results_table)
+                                   psnr_by_bar, results_table)
 from stages.train.splits import SPLITS, Splits, make_splits, nearest_training_distance_mm
 from stages.train.side_by_side import train_models
 from stages.train.trainer import LossWeights, ModelTrainer, PruneSchedule, Renderer, TrainTensors
@@ -341,6 +341,10 @@ def train(ctx: StageContext, rank: int = 0, world_size: int = 1, device: torch.d
             scale = split in SCALED_SPLITS
             for name, value in image_metrics(pred, target, scale, lpips).items():
                 metrics[f"{kind}_{split}_{name}"] = value
+            if scale:
+                bars = [int(tensors.bar[f]) for f, _ in pairs[split]]
+                for bar, value in psnr_by_bar(pred, target, bars, scale).items():
+                    metrics[f"{kind}_{split}_psnr_bar{bar}"] = value
             # The same PSNR with the capture's own units as peak (EXR value 1), for comparison
             # with figures computed on unnormalised linear images.
             metrics[f"{kind}_{split}_psnr_capture_units"] = (metrics[f"{kind}_{split}_psnr"]

@@ -79,6 +79,13 @@ def test_stage_outputs_metrics_table_and_models(capture, tmp_path):
 
     model, meta = load_trained(out / "models" / "travatar")
     assert meta["kind"] == "travatar" and set(meta["held_out_bars"]).isdisjoint(meta["basis_bars"])
+    # Novel light per held-out bar: one figure per bar among the split's evaluated images, in the table too.
+    for model, name in (("ours", "ours"), ("travatar", "TRAvatar*")):
+        by_bar = {int(k.rsplit("_bar", 1)[1]): v for k, v in metrics.items()
+                  if k.startswith(f"{model}_novel_light_psnr_bar")}
+        assert by_bar and set(by_bar) <= set(splits["held_out_bars"])
+        bar_line = next(line for line in table.splitlines() if line.startswith("Novel light per held-out bar"))
+        assert all(f"bar {b} {v:.2f}" in bar_line for b, v in by_bar.items()) and f"{name} bar" in bar_line
 
 
 def test_rerun_differs_only_in_its_declared_run_records(capture, tmp_path):
@@ -274,3 +281,16 @@ def test_coverage_metrics_count_the_foreground_left_transparent():
     out = coverage_metrics(pred, alpha, target, matte)
     assert out == {"uncovered_fraction": 2 / 16, "uncovered_error_share": 0.5}
     assert coverage_metrics(target, alpha, target, matte)["uncovered_error_share"] == 0.0
+
+
+def test_psnr_by_bar_groups_the_images_by_the_bar_that_lit_them():
+    from stages.train.evaluate import psnr_by_bar
+
+    target = torch.rand(4, 6, 6, 3, generator=torch.Generator().manual_seed(0)) * 0.5 + 0.25
+    pred = target.clone()
+    pred[2:] += 0.1  # bar 5's images off by 0.1 everywhere: 20 dB
+    out = psnr_by_bar(pred, target, [3, 3, 5, 5], scale=False)
+    assert set(out) == {3, 5} and out[3] > 100 and out[5] == pytest.approx(20.0, abs=1e-3)
+    # Held-out lights are compared at the ground truth's exposure: a uniformly brighter render is exact.
+    assert psnr_by_bar(1.7 * target, target, [3, 3, 5, 5], scale=True)[5] > 100
+    assert psnr_by_bar(1.7 * target, target, [3, 3, 5, 5], scale=False)[5] < 20
