@@ -121,7 +121,20 @@ def _paper_table_section(train: dict[str, float]) -> Section:
     section.table(table)
     section.paragraph("Predictions for novel lights are scaled to the ground truth's exposure (least squares), "
                       "as in the paper. Higher PSNR/SSIM and lower MAE/LPIPS are better.", "note")
+    by_bar = {name: _held_out_bar_psnrs(train, model) for model, name in (("ours", "ours"), ("travatar", "TRAvatar*"))}
+    if any(by_bar.values()):
+        # The novel-light mean depends on which bars were held out (brighter images, larger errors).
+        parts = "; ".join(f"{name} " + ", ".join(f"bar {b} {v:.2f}" for b, v in rows)
+                          for name, rows in by_bar.items() if rows)
+        section.paragraph(f"Novel light per held-out bar (PSNR dB): {parts}.", "note")
     return section
+
+
+def _held_out_bar_psnrs(train: dict[str, float], model: str) -> list[tuple[int, float]]:
+    """(bar, PSNR) of ``model`` under each held-out bar (the train stage's ``{model}_novel_light_psnr_bar{id}``)."""
+    prefix = f"{model}_novel_light_psnr_bar"
+    return sorted((int(k[len(prefix):]), float(v)) for k, v in train.items()
+                  if k.startswith(prefix) and k[len(prefix):].isdigit())
 
 
 def _stage_section(ctx: StageContext, stage: str, evaluator: str | None, metrics: dict[str, float],
