@@ -40,8 +40,8 @@ def psnr_by_bar(pred: torch.Tensor, target: torch.Tensor, bars: list[int], scale
     """Mean PSNR of each bar's images [K, H, W, 3] (``bars`` [K]: the bar that lit each image).
 
     On a held-out-light split this says which of the held-out lights the split's mean comes
-    from: bars lighting the face head-on give bright images with large absolute errors, so
-    the split's PSNR depends on which bars were held out, not only on the model.
+    from: a bar whose images are brighter gives larger absolute errors for the same relative
+    error, so the split's PSNR depends on which bars were held out, not only on the model.
     """
     if scale:
         pred = pred * exposure_scale(pred, target)[:, None, None, None]
