@@ -49,6 +49,9 @@ class AvatarConfig(BaseModel):
                     "for ours is -0.01 / -0.51 / -0.61 dB on bob and -0.12 / -0.44 / -0.16 dB on alice (novel "
                     "light / performance / both), no interval excluding 0; it gains nothing, so 'world', the "
                     "paper's, stays the default.")
+    untied_bias: bool = Field(False, description="Every transposed conv of the decoder branches also adds a learnt "
+                              "bias per output pixel (MVP's untied biases): each texel's static colour and opacity "
+                              "is a parameter of its own. Both models alike.")
     light_basis: int = Field(0, description="TRAvatar*: number of training lights in the fixed one-hot light basis (0 = ours).")
 
     @model_validator(mode="after")

@@ -46,9 +46,16 @@ class MeshEncoder(nn.Module):
 
 
 class _UpBranch(nn.Module):
-    """Transposed convs (k4 s2 p1) from 8 x 8 up, each fed the conditioning image at its input size."""
+    """Transposed convs (k4 s2 p1) from 8 x 8 up, each fed the conditioning image at its input size.
 
-    def __init__(self, in_channels: int, channels: tuple[int, ...], cond_channels: int) -> None:
+    With ``untied_bias`` every layer also adds a bias of its own per output pixel (MVP's
+    untied biases): a texel's static part (its mean colour, its usual opacity) is then one
+    parameter, not something the shared kernels must compose from the 8 x 8 feature map.
+    The untied biases start at zero, so the branch starts as without them.
+    """
+
+    def __init__(self, in_channels: int, channels: tuple[int, ...], cond_channels: int,
+                 untied_bias: bool = False) -> None:
         super().__init__()
         self.cond_channels = cond_channels
         layers, c_in = [], in_channels
@@ -56,6 +63,9 @@ class _UpBranch(nn.Module):
             layers.append(nn.ConvTranspose2d(c_in + cond_channels, c_out, 4, 2, 1))
             c_in = c_out
         self.layers = nn.ModuleList(layers)
+        self.untied = nn.ParameterList(
+            [nn.Parameter(torch.zeros(1, c, 8 << (i + 1), 8 << (i + 1))) for i, c in enumerate(channels)]
+            if untied_bias else [])
 
     def forward(self, feature: torch.Tensor, cond: "callable | None" = None) -> torch.Tensor:
         """``feature`` [B, C, 8, 8]; ``cond(size)`` -> [B, cond_channels, size, size]. Output before the last activation."""
@@ -64,6 +74,8 @@ class _UpBranch(nn.Module):
             if self.cond_channels:
                 x = torch.cat([x, cond(x.shape[-1])], 1)
             x = layer(x)
+            if self.untied:
+                x = x + self.untied[i]
             if i < len(self.layers) - 1:
                 x = F.leaky_relu(x, 0.2)
         return x
@@ -135,10 +147,11 @@ class RelightableMVP(nn.Module):
         c = config.base_channels
         self.feature_mlp = nn.Sequential(nn.Linear(config.latent_dim, c * 64), nn.LeakyReLU(0.2))
         cond = 6 if config.light_basis == 0 else 3 + config.light_basis
-        self.rgb_branch = _UpBranch(c, config.rgb_channels, cond)
-        self.alpha_branch = _UpBranch(c, config.alpha_channels, 0)
+        untied = config.untied_bias
+        self.rgb_branch = _UpBranch(c, config.rgb_channels, cond, untied)
+        self.alpha_branch = _UpBranch(c, config.alpha_channels, 0, untied)
         geo_channels = (config.geometry_channels,) * config.geometry_layers
-        self.geometry_branch = _UpBranch(c, geo_channels, 0) if geo_channels else None
+        self.geometry_branch = _UpBranch(c, geo_channels, 0, untied) if geo_channels else None
         self.geometry_head = nn.Conv2d(geo_channels[-1] if geo_channels else c, 9, 1)
         nn.init.zeros_(self.geometry_head.weight)
         nn.init.zeros_(self.geometry_head.bias)

@@ -89,6 +89,10 @@ class TrainParams(StageParams):
     lr: float = Field(1e-3, gt=0, description="Adam learning rate (the paper: 1e-4).")
     lr_decay_to: float = Field(0.1, gt=0, le=1, description="Final learning rate as a fraction of lr "
                                "(exponential decay over the run; 1 = constant, as the paper).")
+    weight_average: float = Field(0.0, ge=0, lt=1, description="Decay per iteration of an exponential moving "
+                                  "average of the weights, evaluated and saved instead of the last iterate (0 = "
+                                  "the last iterate, as the paper; 0.998 averages over roughly the last 500 "
+                                  "iterations). Both models alike.")
     pho_weight: float = Field(1.0, ge=0, description="Weight of the photometric (MSE) loss.")
     geo_weight: float = Field(0.1, ge=0, description="Weight of the guide-mesh loss (MSE, cm^2).")
     vol_weight: float = Field(0.01, ge=0, description="Weight of MVP's primitive volume prior.")
@@ -295,7 +299,8 @@ def train(ctx: StageContext, rank: int = 0, world_size: int = 1, device: torch.d
             ckpt_path=ckpt_dir / f"{kind}.pt", checkpoint_every=params.checkpoint_every,
             spike_factor=params.spike_factor, log=ctx.log, curve_every=params.curve_every,
             curve_fn=curve_fn if lead else None, writer=writer, lr_decay_to=params.lr_decay_to, rank=rank,
-            world_size=world_size, prune=_prune_schedule(params, iterations))
+            world_size=world_size, prune=_prune_schedule(params, iterations),
+            weight_average=params.weight_average)
         ctx.log.info("%s: %d parameters, %d primitives of %d^3 voxels", kind, count_parameters(model),
                      config.num_prims, config.voxels_per_side)
         metrics[f"{kind}_parameters"] = count_parameters(model)

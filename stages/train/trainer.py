@@ -231,11 +231,13 @@ class ModelTrainer:
                  ckpt_path: Path, checkpoint_every: int, spike_factor: float, log: logging.Logger,
                  curve_every: int = 0, curve_fn: Callable[[], float] | None = None, writer=None,
                  lr_decay_to: float = 1.0, rank: int = 0, world_size: int = 1,
-                 prune: PruneSchedule | None = None) -> None:
+                 prune: PruneSchedule | None = None, weight_average: float = 0.0) -> None:
         """``rank``/``world_size``: this process's place in an initialised process group (1 = no DDP).
 
         ``batch_size`` is the global batch; with DDP it must divide by ``world_size``.
         ``prune``: when to prune empty primitives (None = never).
+        ``weight_average``: decay of an exponential moving average of the parameters, which
+        replaces the last iterate at the end of ``run`` (0 = keep the last iterate).
         """
         if batch_size % world_size:
             raise ValueError(f"batch_size {batch_size} does not divide by {world_size} processes")
@@ -257,6 +259,11 @@ class ModelTrainer:
         self.prune = prune if prune is not None and 0 < prune.at_iteration <= iterations else None
         # [P] largest opacity each primitive added to a training ray in the pruning window.
         self.prim_alpha_max = torch.zeros(self.model.prim_keep.numel(), device=tensors.device)
+        if not 0.0 <= weight_average < 1.0:
+            raise ValueError(f"weight_average {weight_average} must be in [0, 1)")
+        self.weight_average = weight_average
+        #: The parameters' moving average (by name), or None when ``weight_average`` is 0.
+        self.averaged: dict[str, torch.Tensor] | None = self._fresh_average() if weight_average else None
         #: Set by whoever runs this trainer beside others (``side_by_side.train_models``): when the
         #: event is set, ``run`` stops before its next iteration with ``TrainingStopped``.
         self.stop_event: threading.Event | None = None
@@ -268,17 +275,44 @@ class ModelTrainer:
             # intensities are rows of one indexed tensor), so DDP needs no unused-parameter search.
             self._ddp_loss = DistributedDataParallel(_BatchLoss(self), device_ids=[dev] if dev.type == "cuda" else None)
 
+    # ---- weight averaging ----------------------------------------------------------------------
+    def _fresh_average(self) -> dict[str, torch.Tensor]:
+        return {name: p.detach().clone() for name, p in self.model.named_parameters()}
+
+    def _update_average(self) -> None:
+        """Move the average towards the parameters just stepped to.
+
+        The decay ramps up as (1 + i) / (10 + i) to ``weight_average``, so the first
+        iterations' weights (far from the optimum) leave the average quickly.
+        """
+        i = self.state.iteration
+        keep = min(self.weight_average, (1.0 + i) / (10.0 + i))
+        with torch.no_grad():
+            for name, p in self.model.named_parameters():
+                self.averaged[name].lerp_(p.detach(), 1.0 - keep)
+
+    def use_average(self) -> None:
+        """Load the averaged parameters into the model (a no-op without weight averaging)."""
+        if self.averaged is None:
+            return
+        with torch.no_grad():
+            for name, p in self.model.named_parameters():
+                p.copy_(self.averaged[name])
+
     # ---- checkpoints -------------------------------------------------------------------------
     def _snapshot(self) -> dict:
-        return {"model": self.model.state_dict(), "optim": self.optim.state_dict(),
+        snap = {"model": self.model.state_dict(), "optim": self.optim.state_dict(),
                 "rng": self.gen.get_state(), "state": json.dumps(self.state.__dict__),
                 "prim_alpha_max": self.prim_alpha_max.detach().cpu().clone()}
+        if self.averaged is not None:
+            snap["averaged"] = self.averaged
+        return snap
 
     def save_checkpoint(self) -> None:
         snap = self._snapshot()
         if self.rank == 0:  # every rank holds the same state; one writer
             _atomic_save(snap, self.ckpt_path)
-        self._good = copy.deepcopy({"model": snap["model"], "optim": snap["optim"]})
+        self._good = copy.deepcopy({"model": snap["model"], "optim": snap["optim"], "averaged": snap.get("averaged")})
 
     def try_resume(self) -> bool:
         """Load the checkpoint if there is one; a corrupt one is ignored with a warning."""
@@ -292,11 +326,17 @@ class ModelTrainer:
             self.state = TrainState(**json.loads(snap["state"]))
             if "prim_alpha_max" in snap:
                 self.prim_alpha_max = snap["prim_alpha_max"].to(self.prim_alpha_max.device)
+            if self.averaged is not None:
+                # A checkpoint written without averaging starts the average at its weights.
+                saved = snap.get("averaged")
+                self.averaged = ({k: v.to(self.averaged[k].device) for k, v in saved.items()} if saved
+                                 else self._fresh_average())
         except (OSError, RuntimeError, KeyError, ValueError, TypeError) as err:
             self.log.warning("%s: unreadable checkpoint (%s); starting this model from scratch", self.ckpt_path, err)
             return False
         self._set_lr(self.state.lr)
-        self._good = copy.deepcopy({"model": self.model.state_dict(), "optim": self.optim.state_dict()})
+        self._good = copy.deepcopy({"model": self.model.state_dict(), "optim": self.optim.state_dict(),
+                                    "averaged": self.averaged})
         self.log.info("%s: resumed at iteration %d", self.r.kind, self.state.iteration)
         return True
 
@@ -315,6 +355,8 @@ class ModelTrainer:
             keep = self.model.prim_keep.clone()
             self.model.load_state_dict(self._good["model"])
             self.optim.load_state_dict(self._good["optim"])
+            if self._good.get("averaged") is not None:
+                self.averaged = copy.deepcopy(self._good["averaged"])
             self.model.prune(keep)
         self._set_lr(self.state.lr)
 
@@ -430,6 +472,8 @@ class ModelTrainer:
             self._rollback("gradient is not finite")
             return terms
         self.optim.step()
+        if self.averaged is not None:
+            self._update_average()
         ema = self.state.loss_ema
         self.state.loss_ema = terms["loss"] if not math.isfinite(ema) else 0.95 * ema + 0.05 * terms["loss"]
         return terms
@@ -469,5 +513,8 @@ class ModelTrainer:
                 self.save_checkpoint()
             progress.advance(1, model=self.r.kind, loss=terms["loss"], psnr=terms["psnr"],
                              it_per_s=it / max(self.state.train_seconds, 1e-9))
+        # The checkpoint keeps the last iterate and the average apart, so a resumed run (even one
+        # resumed after its last iteration) ends with the same averaged model.
+        self.use_average()
         self.model.eval()
         return self.state

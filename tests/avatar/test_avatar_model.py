@@ -121,6 +121,35 @@ def test_direction_image_is_constant_per_primitive_tile(model):
     assert rgb.shape == (1, 64, 4, 4, 4, 3) and bool((rgb >= 0).all())
 
 
+def test_untied_biases_start_at_zero_and_move_one_texel_each():
+    verts, faces = _sphere()
+    layout = build_layout(verts, faces, SMALL.prims_per_side)
+    heads = {}
+    for untied in (False, True):
+        torch.manual_seed(0)
+        heads[untied] = RelightableMVP(SMALL.model_copy(update={"untied_bias": untied}), layout, num_bars=4)
+    # One bias per output pixel of every transposed conv: rgb 16x16 and 32x32, alpha the same (N=8, M=4).
+    extra = sum(p.numel() for p in heads[True].parameters()) - sum(p.numel() for p in heads[False].parameters())
+    assert extra == 16 * 16 ** 2 + 12 * 32 ** 2 + 8 * 16 ** 2 + 4 * 32 ** 2
+    mesh = torch.as_tensor(verts)[None]
+    cam, light = torch.tensor([[0.0, 0.0, 1.0]]), torch.tensor([[0.5, 0.5, 0.5]])
+
+    def decoded(head: RelightableMVP) -> tuple[torch.Tensor, torch.Tensor]:
+        with torch.no_grad():
+            geo = head.decode_geometry(head.encode(mesh)[0])
+            return geo.density, head.decode_rgb(geo, cam, light)
+
+    tied, untied = decoded(heads[False]), decoded(heads[True])
+    torch.testing.assert_close(untied[0], tied[0], rtol=0, atol=0)  # the same head until trained
+    torch.testing.assert_close(untied[1], tied[1], rtol=0, atol=0)
+    with torch.no_grad():  # texel (row 5, column 9), channel 0 = voxel z 0, red
+        heads[True].rgb_branch.untied[-1][0, 0, 5, 9] += 1.0
+    rgb = decoded(heads[True])[1]
+    changed = torch.nonzero(rgb != untied[1]).tolist()
+    assert changed == [[0, 1 * 8 + 2, 0, 1, 1, 0]]  # primitive (1, 2), voxel (z 0, y 1, x 1), red
+    assert rgb[0, 10, 0, 1, 1, 0] > untied[1][0, 10, 0, 1, 1, 0]
+
+
 def test_primitive_frame_directions_carry_the_cosine_to_the_normal():
     """direction_frame='primitive' feeds R_k^T v_k, R_k^T l_k: the same vectors, the normal cosine in channel z."""
     verts, faces = _sphere()

@@ -108,8 +108,10 @@ def test_rerun_differs_only_in_its_declared_run_records(capture, tmp_path):
     assert (outs[0] / "curve.json").read_bytes() != (outs[1] / "curve.json").read_bytes()
 
 
-def test_resume_after_kill_continues_the_same_run(capture, tmp_path, monkeypatch, caplog):
-    params = {**BASE, "iterations": 10, "baseline": False, "lpips": False, "curve_every": 0}
+@pytest.mark.parametrize("weight_average", [0.0, 0.9])
+def test_resume_after_kill_continues_the_same_run(capture, tmp_path, monkeypatch, caplog, weight_average):
+    params = {**BASE, "iterations": 10, "baseline": False, "lpips": False, "curve_every": 0,
+              "weight_average": weight_average}
     whole = run_stage_for_test(STAGE, tmp_path / "a", capture, params)
 
     calls = {"n": 0}
@@ -130,6 +132,39 @@ def test_resume_after_kill_continues_the_same_run(capture, tmp_path, monkeypatch
         resumed = run_stage_for_test(STAGE, tmp_path / "b", capture, params)
     assert "resumed at iteration 4" in caplog.text
     assert_same_models(whole, resumed, ("ours",))
+
+
+def test_weight_average_saves_the_moving_average_of_the_iterates(capture, tmp_path, monkeypatch):
+    keep_at_most = 0.6
+    params = {**BASE, "iterations": 6, "baseline": False, "lpips": False, "curve_every": 0,
+              "weight_average": keep_at_most}
+    start: dict[str, torch.Tensor] = {}
+    iterates: list[tuple[int, dict[str, torch.Tensor]]] = []
+    real_fresh, real_update = trainer_mod.ModelTrainer._fresh_average, trainer_mod.ModelTrainer._update_average
+
+    def recording_fresh(self):
+        average = real_fresh(self)
+        start.update({k: v.clone() for k, v in average.items()})
+        return average
+
+    def recording_update(self):
+        iterates.append((self.state.iteration, {k: p.detach().clone() for k, p in self.model.named_parameters()}))
+        real_update(self)
+
+    monkeypatch.setattr(trainer_mod.ModelTrainer, "_fresh_average", recording_fresh)
+    monkeypatch.setattr(trainer_mod.ModelTrainer, "_update_average", recording_update)
+    out = run_stage_for_test(STAGE, tmp_path, capture, params)
+    assert [i for i, _ in iterates] == list(range(6))
+    expected = {k: v.double() for k, v in start.items()}
+    for i, weights in iterates:
+        keep = min(keep_at_most, (1 + i) / (10 + i))
+        expected = {k: keep * v + (1 - keep) * weights[k].double() for k, v in expected.items()}
+    saved = load_file(str(out / "models" / "ours" / "model.safetensors"))
+    last = iterates[-1][1]
+    moved = [k for k in expected if not torch.allclose(last[k], expected[k].float(), atol=1e-6)]
+    assert moved, "the average should differ from the last iterate"
+    for key, value in expected.items():
+        torch.testing.assert_close(saved[key], value.float(), atol=1e-6, rtol=1e-5, msg=key)
 
 
 def test_models_trained_side_by_side_are_the_models_trained_one_after_another(capture, tmp_path):
