@@ -13,11 +13,13 @@ inputs), ``SEEDS`` (default ``0,1,2``), ``SEEDS_ITERATIONS`` (default: the prese
 key by key, e.g. ``'{"capacity_rule": {"latent_per_mode": 0}}'`` to train both models at the
 avatar section's latent size instead of the rule's) and ``SEEDS_TAG`` (a name for that
 variant). Writes ``bench-results/seeds_<subject>.json`` (``seeds_<subject>_<tag>.json`` with a
-tag); a later run with the same settings reuses the seeds that file already holds and trains
-only the new ones. A tagged run also compares itself with the untagged file's runs of the same
-seeds and data where there are any (at the iterations each was run with; both are printed):
-variant - default per model and split, paired by seed, with the same 95% interval
-(``against_default`` in its results). Each run records its training wall time (``seconds``),
+tag) after every seed, so a stopped run keeps the seeds it finished; a later run with the same
+settings reuses the seeds that file already holds and trains only the new ones. A tagged run
+also compares itself with a baseline file's runs of the same seeds and data where there are
+any (at the iterations each was run with; both are printed): variant - baseline per model and
+split, paired by seed, with the same 95% interval (``against_default`` in its results). The
+baseline is the untagged file, or ``seeds_<subject>_<SEEDS_BASELINE>.json`` when
+``SEEDS_BASELINE`` names a tag (e.g. ``it5k``, the preset's 5000 iterations on bob). Each run records its training wall time (``seconds``),
 printed as a mean per seed. PSNR only (no LPIPS). About 6 minutes a seed run alone on a
 2-core CPU with the tiny preset (both models side by side: 1712 s for 5 seeds on bob).
 """
@@ -96,9 +98,8 @@ def _overrides() -> dict:
 def main() -> dict:
     subject = os.environ.get("SEEDS_SUBJECT", "alice")
     seeds = [int(s) for s in os.environ.get("SEEDS", "0,1,2").split(",")]
-    tag = os.environ.get("SEEDS_TAG", "").strip()
-    if tag and not tag.replace("-", "").replace("_", "").isalnum():
-        raise SystemExit(f"SEEDS_TAG={tag!r}: use letters, digits, '-' and '_' (it names the results file)")
+    tag = _tag("SEEDS_TAG")
+    baseline = _tag("SEEDS_BASELINE")
     preset = tiny_train_params()
     iterations = int(os.environ.get("SEEDS_ITERATIONS", "0")) or int(preset["iterations"])
     base = merge_params({**preset, "iterations": iterations, "baseline": True, "baseline_iterations": 0,
@@ -120,8 +121,12 @@ def main() -> dict:
             runs[seed]["seconds"] = m["seconds"]  # training wall time, both models
             print(f"seed {seed}: " + ", ".join(f"{s} {runs[seed][f'ours_{s}']:.2f}/{runs[seed][f'travatar_{s}']:.2f}"
                                                 for s in SPLITS) + " (ours/TRAvatar*)", flush=True)
-    summary = {s: paired_summary([runs[x][f"ours_{s}"] for x in seeds], [runs[x][f"travatar_{s}"] for x in seeds])
-               for s in SPLITS}
+            # Each seed costs minutes: keep it at once, so a stopped run resumes from here.
+            _write_results(path, {"subject": subject, "source": source, "iterations": iterations,
+                                  "seeds": sorted(runs), "params": base, "complete": False,
+                                  "runs": {str(k): v for k, v in sorted(runs.items())},
+                                  "summary": _summary(runs, sorted(runs))})
+    summary = _summary(runs, seeds)
     print(f"{'split':<12} {'ours':>13} {'TRAvatar*':>13} {'ours - TRAvatar* (95% CI)':>30}  verdict")
     for s, r in summary.items():
         print(f"{s:<12} {r['ours_mean']:6.2f} ± {r['ours_std']:4.2f} {r['travatar_mean']:6.2f} ± {r['travatar_std']:4.2f} "
@@ -131,22 +136,47 @@ def main() -> dict:
         print(f"training wall time per seed (both models): {np.mean(timed):.0f} s (min {min(timed):.0f}, "
               f"max {max(timed):.0f}, {len(timed)} seeds)")
     results = {"subject": subject, "source": source, "iterations": iterations, "seeds": seeds, "params": base,
-               "runs": {str(k): v for k, v in sorted(runs.items())}, "summary": summary}
-    if tag:
-        default_iterations, default = _default_runs(out / f"seeds_{subject}.json", source)
+               "complete": True, "runs": {str(k): v for k, v in sorted(runs.items())}, "summary": summary}
+    if tag and tag != baseline:
+        baseline_name = f"seeds_{subject}_{baseline}.json" if baseline else f"seeds_{subject}.json"
+        default_iterations, default = _default_runs(out / baseline_name, source)
         compared = against_default(runs, default, seeds)
         if compared:
             compared["default_iterations"] = default_iterations
-            print(f"{tag} ({iterations} iterations) - default ({default_iterations} iterations), paired over seeds "
-                  f"{compared['seeds']} (95% CI):")
+            compared["baseline_file"] = baseline_name
+            print(f"{tag} ({iterations} iterations) - {baseline or 'default'} ({default_iterations} iterations, "
+                  f"{baseline_name}), paired over seeds {compared['seeds']} (95% CI):")
             for m in MODELS:
                 print(f"  {'ours' if m == 'ours' else 'TRAvatar*':<9} " + ", ".join(
                     f"{s} {compared[f'{m}_{s}']['diff_mean']:+.2f} [{compared[f'{m}_{s}']['diff_ci95'][0]:+.2f}, "
                     f"{compared[f'{m}_{s}']['diff_ci95'][1]:+.2f}]" for s in SPLITS))
             results["against_default"] = compared
-    out.mkdir(exist_ok=True)
-    path.write_text(json.dumps(results, indent=1))
+        elif baseline and not (out / baseline_name).exists():
+            print(f"SEEDS_BASELINE={baseline!r}: no {baseline_name} in {out}; nothing to compare with")
+    _write_results(path, results)
     return results
+
+
+def _summary(runs: dict[int, dict], seeds: list[int]) -> dict:
+    """Per split: both models' mean and spread over ``seeds`` and the paired difference ours - TRAvatar*."""
+    return {s: paired_summary([runs[x][f"ours_{s}"] for x in seeds], [runs[x][f"travatar_{s}"] for x in seeds])
+            for s in SPLITS}
+
+
+def _tag(variable: str) -> str:
+    """The tag in environment ``variable`` ('' if unset); it names a results file, so only [A-Za-z0-9_-]."""
+    tag = os.environ.get(variable, "").strip()
+    if tag and not tag.replace("-", "").replace("_", "").isalnum():
+        raise SystemExit(f"{variable}={tag!r}: use letters, digits, '-' and '_' (it names a results file)")
+    return tag
+
+
+def _write_results(path: Path, results: dict) -> None:
+    """Write ``results`` to ``path`` whole or not at all (a stop mid-write leaves the previous file)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    part = path.with_name(path.name + ".part")
+    part.write_text(json.dumps(results, indent=1))
+    os.replace(part, path)
 
 
 def _runs_matching(path: Path, **expected: object) -> dict[int, dict]:

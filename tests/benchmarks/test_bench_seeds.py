@@ -71,3 +71,55 @@ def test_a_variant_is_compared_with_the_default_on_the_seeds_both_hold(tmp_path)
     assert _default_runs(path, "workspace bob") == (2500, {0: run(0.0)})  # its iterations, to print beside
     assert _default_runs(path, "synthetic capture") == (None, {})  # other data: not comparable
     assert _default_runs(tmp_path / "none.json", "workspace bob") == (None, {})
+
+
+def test_a_stopped_run_keeps_its_finished_seeds_and_compares_with_a_named_baseline(tmp_path, monkeypatch):
+    """Each seed is written as soon as it is trained; a rerun trains only the missing ones."""
+    import json
+
+    import benchmarks.bench_seeds as bench
+
+    (tmp_path / "bench-results").mkdir()
+    monkeypatch.setattr(bench, "ROOT", tmp_path)
+    monkeypatch.setattr(bench, "tiny_train_params", lambda: {"iterations": 10, "lr": 0.003})
+    monkeypatch.setattr(bench, "train_inputs", lambda subject, scratch: ({}, f"workspace {subject}"))
+    trained: list[int] = []
+    stop_at = {1}  # the user stops the first bench during seed 1
+
+    def fake_train(inputs, params, scratch, name):
+        # Stands in for a real training run (minutes each): only the bench's bookkeeping is tested here.
+        seed = params["seed"]
+        if seed in stop_at:
+            stop_at.discard(seed)
+            raise KeyboardInterrupt
+        trained.append(seed)
+        return {"metrics": {"seconds": 1.0, **{f"{m}_{s}_psnr": 25.0 + seed + (m == "ours")
+                                                for m in bench.MODELS for s in bench.SPLITS}}}
+
+    monkeypatch.setattr(bench, "run_train", fake_train)
+    monkeypatch.setenv("SEEDS_SUBJECT", "bob")
+    monkeypatch.setenv("SEEDS", "0,1,2")
+    monkeypatch.setenv("SEEDS_TAG", "x")
+    with pytest.raises(KeyboardInterrupt):
+        bench.main()
+    kept = json.loads((tmp_path / "bench-results" / "seeds_bob_x.json").read_text())
+    assert kept["runs"].keys() == {"0"} and kept["complete"] is False
+    assert kept["summary"]["train"]["ours_mean"] == 26.0
+    assert not list((tmp_path / "bench-results").glob("*.part"))  # written whole, no leftovers
+
+    # The baseline: a named tag's file holding seeds 0 and 2, one dB under the variant for ours.
+    base_runs = {str(x): {f"{m}_{s}": 24.0 + x + (m == "ours") for m in bench.MODELS for s in bench.SPLITS}
+                 for x in (0, 2)}
+    (tmp_path / "bench-results" / "seeds_bob_it5k.json").write_text(json.dumps(
+        {"source": "workspace bob", "iterations": 5000, "runs": base_runs}))
+    monkeypatch.setenv("SEEDS_BASELINE", "it5k")
+    trained.clear()
+    results = bench.main()
+    assert trained == [1, 2]  # seed 0 came from the file
+    assert results["complete"] is True and results["seeds"] == [0, 1, 2]
+    compared = results["against_default"]
+    assert compared["seeds"] == [0, 2] and compared["baseline_file"] == "seeds_bob_it5k.json"
+    assert compared["ours_novel_light"]["diff_mean"] == pytest.approx(1.0)
+    monkeypatch.setenv("SEEDS_BASELINE", "../x")
+    with pytest.raises(SystemExit, match="SEEDS_BASELINE"):
+        bench.main()
