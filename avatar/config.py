@@ -52,7 +52,7 @@ class AvatarConfig(BaseModel):
     untied_bias: bool = Field(False, description="Every transposed conv of the decoder branches also adds a learnt "
                               "bias per output pixel (MVP's untied biases): each texel's static colour and opacity "
                               "is a parameter of its own. Both models alike. Measured on tiny (bob, 5 seeds): ours "
-                              "+0.1 to +0.25 dB, TRAvatar* +0.3 to +0.55 dB (README); off by default.")
+                              "+0.1 to +0.25 dB, TRAvatar* +0.3 to +0.55 dB (docs/tiny-accuracy.md); off by default.")
     light_basis: int = Field(0, description="TRAvatar*: number of training lights in the fixed one-hot light basis (0 = ours).")
 
     @model_validator(mode="after")

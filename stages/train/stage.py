@@ -94,7 +94,7 @@ class TrainParams(StageParams):
                                   "the last iterate, as the paper; 0.998 averages over roughly the last 500 "
                                   "iterations). Both models alike. Measured on tiny: +0.1 dB on bob but -0.5 to "
                                   "-1.2 dB for ours on alice, whose encoder and decoders still move together late "
-                                  "in training and no longer match once averaged apart (README).")
+                                  "in training and no longer match once averaged apart (docs/tiny-accuracy.md).")
     pho_weight: float = Field(1.0, ge=0, description="Weight of the photometric (MSE) loss.")
     geo_weight: float = Field(0.1, ge=0, description="Weight of the guide-mesh loss (MSE, cm^2).")
     vol_weight: float = Field(0.01, ge=0, description="Weight of MVP's primitive volume prior.")
