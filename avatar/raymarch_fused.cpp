@@ -18,6 +18,11 @@
 // A (sample, candidate) pair contributes when near <= t <= far (the same test as the
 // PyTorch path, so both keep exactly the same pairs).
 //
+// Both passes stop a ray at its first sample past opacity 1 (MVP's early termination): every
+// later sample has a share of 0 and no gradient, so skipping it changes no bit of the outputs
+// (the tensor path computes and multiplies those samples by 0). On a trained head most rays
+// saturate: forward + backward on alice's (ours, seed 0, 8 x 256 training rays) 29.2 -> 20.4 ms.
+//
 // Forward runs rays in parallel (each ray writes only its own outputs). Backward runs rays
 // in order on one thread: its scatter into the voxel-table gradient is then deterministic.
 
@@ -90,29 +95,38 @@ struct RayBoxes {
   }
 };
 
-// Per-sample density and density-weighted colour of one ray, summed over the boxes its sample is in.
+// Density and density-weighted colour of the sample at distance ts, summed over the boxes it is in:
+// out = (sigma, sigma * r, sigma * g, sigma * b).
 template <typename scalar_t>
-void march_samples(const scalar_t* table, const RayBoxes<scalar_t>& boxes, const scalar_t* t, int64_t k, int64_t s,
-                   int64_t m, scalar_t* sigma, scalar_t* sigma_rgb) {
+inline void sample_sums(const scalar_t* table, const RayBoxes<scalar_t>& boxes, scalar_t ts, int64_t k, int64_t m,
+                        scalar_t out[4]) {
   Lookup<scalar_t> lk;
   scalar_t y[3];
-  for (int64_t si = 0; si < s; ++si) {
-    scalar_t sg = 0, cr = 0, cg = 0, cb = 0;
-    const scalar_t ts = t[si];
-    for (int64_t ki = 0; ki < k; ++ki) {
-      if (!boxes.sample_in(ki, ts, y)) continue;
-      lookup(table, boxes.base[ki], m, y, lk);
-      const scalar_t sk = lk.rgba[3];
-      sg += sk;
-      cr += lk.rgba[0] * sk;
-      cg += lk.rgba[1] * sk;
-      cb += lk.rgba[2] * sk;
-    }
-    sigma[si] = sg;
-    sigma_rgb[si * 3] = cr;
-    sigma_rgb[si * 3 + 1] = cg;
-    sigma_rgb[si * 3 + 2] = cb;
+  out[0] = out[1] = out[2] = out[3] = 0;
+  for (int64_t ki = 0; ki < k; ++ki) {
+    if (!boxes.sample_in(ki, ts, y)) continue;
+    lookup(table, boxes.base[ki], m, y, lk);
+    const scalar_t sk = lk.rgba[3];
+    out[0] += sk;
+    out[1] += lk.rgba[0] * sk;
+    out[2] += lk.rgba[1] * sk;
+    out[3] += lk.rgba[2] * sk;
   }
+}
+
+// Samples of a ray that can matter: all up to and including the first whose accumulated opacity
+// passes 1 (MVP's early termination). Every later sample has `before` > 1, so its share is 0
+// and the clamp in the share stops its gradient: it adds nothing to the colour, the gradients
+// or the pruning statistics, and skipping it changes no bit of any of them. (A ray that ends
+// at exactly 1 keeps all its samples: a later sample's share is then 0 but not clamped.)
+template <typename scalar_t>
+inline int64_t samples_until_opaque(const scalar_t* sigma, scalar_t step, int64_t s) {
+  scalar_t acc = 0;
+  for (int64_t si = 0; si < s; ++si) {
+    acc += sigma[si] * step;
+    if (acc > scalar_t(1)) return si + 1;
+  }
+  return s;
 }
 
 void check_inputs(const torch::Tensor& table, const torch::Tensor& base, const torch::Tensor& near,
@@ -159,13 +173,20 @@ std::vector<torch::Tensor> forward(torch::Tensor table, torch::Tensor base, torc
       scalar_t y[3];
       for (int64_t ri = begin; ri < end; ++ri) {
         const RayBoxes<scalar_t> boxes(base_p, nr_p, fr_p, op, dp, ri, k);
-        scalar_t* sg = sig_p + ri * s;
+        scalar_t* sg = sig_p + ri * s;  // stays 0 past the ray's last sample that matters
         scalar_t* sc = srgb_p + ri * s * 3;
-        march_samples(tab, boxes, tp + ri * s, k, s, m, sg, sc);
+        const scalar_t* t_r = tp + ri * s;
         // MVP's additive compositing: a sample counts with the share of its opacity still below 1.
         const scalar_t step = dtp[ri];
         scalar_t acc = 0, cr = 0, cg = 0, cb = 0;
+        int64_t used = s;  // samples up to the first past opacity 1 (samples_until_opaque)
         for (int64_t si = 0; si < s; ++si) {
+          scalar_t sums[4];
+          sample_sums(tab, boxes, t_r[si], k, m, sums);
+          sg[si] = sums[0];
+          sc[si * 3] = sums[1];
+          sc[si * 3 + 1] = sums[2];
+          sc[si * 3 + 2] = sums[3];
           const scalar_t op_s = sg[si] * step;
           const scalar_t q = (scalar_t(1) - acc) / std::max(op_s, scalar_t(1e-10));
           const scalar_t share = std::min(std::max(q, scalar_t(0)), scalar_t(1));
@@ -175,6 +196,10 @@ std::vector<torch::Tensor> forward(torch::Tensor table, torch::Tensor base, torc
           cg += sc[si * 3 + 1] * w;
           cb += sc[si * 3 + 2] * w;
           acc += op_s;
+          if (acc > scalar_t(1)) {
+            used = si + 1;
+            break;
+          }
         }
         rgb_p[ri * 3] = cr;
         rgb_p[ri * 3 + 1] = cg;
@@ -182,9 +207,8 @@ std::vector<torch::Tensor> forward(torch::Tensor table, torch::Tensor base, torc
         alpha_p[ri] = std::min(acc, scalar_t(1));
         if (!with_added) continue;
         // Second pass over the pairs: each box's density times the share of the sample it is in.
-        const scalar_t* t_r = tp + ri * s;
         scalar_t* add_r = added_p + ri * k;
-        for (int64_t si = 0; si < s; ++si) {
+        for (int64_t si = 0; si < used; ++si) {
           const scalar_t ts = t_r[si];
           for (int64_t ki = 0; ki < k; ++ki) {
             if (!boxes.sample_in(ki, ts, y)) continue;
@@ -235,8 +259,9 @@ std::vector<torch::Tensor> backward(torch::Tensor grad_rgb, torch::Tensor grad_a
       // d loss / d opacity_j: from alpha (if not clamped), from sample j's own share, and from
       // the share of every later sample through its `before` (a suffix sum).
       const scalar_t g_acc = acc <= scalar_t(1) ? g_alpha[ri] : scalar_t(0);
+      const int64_t used = samples_until_opaque(sg, step, s);  // later samples: no gradient at all
       scalar_t later = 0;  // sum over samples after j of d loss / d before
-      for (int64_t si = s - 1; si >= 0; --si) {
+      for (int64_t si = used - 1; si >= 0; --si) {
         const scalar_t op_s = sg[si] * step;
         const scalar_t denom = std::max(op_s, scalar_t(1e-10));
         const scalar_t q = (scalar_t(1) - before[si]) / denom;
@@ -253,7 +278,7 @@ std::vector<torch::Tensor> backward(torch::Tensor grad_rgb, torch::Tensor grad_a
       scalar_t *g_o = g_o_all + ri * k * 3, *g_d = g_d_all + ri * k * 3;
       const scalar_t* tp = tp_all + ri * s;
       scalar_t y[3];
-      for (int64_t si = 0; si < s; ++si) {
+      for (int64_t si = 0; si < used; ++si) {
         const scalar_t ts = tp[si];
         const scalar_t* gc = g_c.data() + si * 3;
         for (int64_t ki = 0; ki < k; ++ki) {

@@ -166,3 +166,39 @@ def test_unknown_kernel_is_refused():
     prims, o, d = _scene()
     with pytest.raises(ValueError, match="'cuda' is not one of auto, fused, torch"):
         raymarch(prims, o, d, steps=16, kernel="cuda")
+
+
+def test_fused_kernel_stops_each_ray_once_it_is_opaque(fused_kernel):
+    """Samples past opacity 1 are never read: NaN voxels hidden behind an opaque box change no output or gradient.
+
+    The tensor path reads them (and turns NaN); the fused kernel stops each ray at its first
+    sample past opacity 1, which skips work without changing a bit of what it computes.
+    """
+    dtype = torch.float64
+    centre = torch.tensor([[[0.0, 0.0, 0.0], [0.0, 0.0, 1.0]]], dtype=dtype)  # front box, then one behind it
+    rotation = torch.eye(3, dtype=dtype).expand(1, 2, 3, 3).clone()
+    half = torch.full((1, 2, 3), 0.4, dtype=dtype)
+    g = torch.Generator().manual_seed(0)
+    rgb = torch.rand(1, 2, 4, 4, 4, 3, generator=g, dtype=dtype)
+    density = torch.rand(1, 2, 4, 4, 4, generator=g, dtype=dtype) + 20.0  # ~8 of opacity through the front box
+    origins = torch.zeros(1, 16, 3, dtype=dtype)
+    origins[..., 2] = -3.0
+    origins[..., :2] = torch.rand(1, 16, 2, generator=g, dtype=dtype) * 0.4 - 0.2
+    dirs = torch.tensor([0.0, 0.0, 1.0], dtype=dtype).expand(1, 16, 3)
+
+    def render(hidden: float, kernel: str):
+        colour, sigma = rgb.clone(), density.clone()
+        colour[:, 1], sigma[:, 1] = hidden, hidden
+        leaves = [colour.requires_grad_(), sigma.requires_grad_()]
+        res = raymarch(Primitives(centre, rotation, half, colour, sigma), origins, dirs, steps=16, kernel=kernel)
+        return res, _gradients(res, torch.ones_like(res.rgb), leaves)
+
+    nan_img, nan_grads = render(float("nan"), fused_kernel)
+    img, grads = render(0.7, fused_kernel)
+    assert bool((img.alpha == 1.0).all())
+    for a, b in zip((nan_img.rgb, nan_img.alpha, *nan_grads), (img.rgb, img.alpha, *grads)):
+        assert bool(torch.isfinite(a).all())
+        torch.testing.assert_close(a, b, rtol=0, atol=0)
+    assert float(grads[0][:, 0].abs().sum()) > 0 and float(grads[0][:, 1].abs().sum()) == 0
+    tensor_img, _ = render(float("nan"), "torch")  # control: the hidden voxels do lie on the rays' samples
+    assert bool(torch.isnan(tensor_img.rgb).any())
