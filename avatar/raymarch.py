@@ -285,19 +285,20 @@ def _raymarch_fused(prims: Primitives, rays_o: torch.Tensor, rays_d: torch.Tenso
     with torch.no_grad():
         cand, near, far, t_min, t_max = module.candidates(
             rays_o.detach().contiguous(), rays_d.detach().contiguous(), local_from_head.detach().contiguous(),
-            centre_local.detach().contiguous())  # [B*R, K] x3, [B*R] x2
+            centre_local.detach().contiguous(), prims.centre.detach().contiguous(),
+            prims.half_extent.detach().norm(dim=-1).contiguous())  # [B*R, K] x3, [B*R] x2
         k = cand.shape[1]
         dt = (t_max - t_min) / steps  # [B*R]
         t = t_min[:, None] + (torch.arange(steps, dtype=dt.dtype) + 0.5) * dt[:, None]  # [B*R, S]
         batch_of_ray = torch.arange(b).repeat_interleave(r)[:, None]  # [B*R, 1]
         flat_p = batch_of_ray * p + cand.clamp(min=0)  # [B*R, K] primitive row over the batch
-        base = torch.where(cand >= 0, flat_p * (m ** 3), -1)  # [B*R, K]
-    # The ray in each candidate's local frame, y(t) = o_local + t d_local (differentiable).
-    mat = local_from_head.reshape(-1, 3, 3)[flat_p]  # [B*R, K, 3, 3]
-    o_local = torch.einsum("ri,rkij->rkj", rays_o.reshape(-1, 3), mat) - centre_local.reshape(-1, 3)[flat_p]
-    d_local = torch.einsum("ri,rkij->rkj", rays_d.reshape(-1, 3), mat)  # [B*R, K, 3]
+        prim = torch.where(cand >= 0, flat_p, -1)  # [B*R, K]
+    # The kernel takes each ray into its candidates' frames itself, y(t) = o_local + t d_local, and
+    # returns the gradients of the frames (local_from_head, centre_local) per box.
     table = torch.cat([prims.rgb, prims.density[..., None]], -1).reshape(-1, 4)  # [B*P*M^3, 4]
-    rgb, alpha, added = fused_raymarch(table, o_local, d_local, base, near, far, t, dt, m, with_added=prim_stats)
+    rgb, alpha, added = fused_raymarch(table, local_from_head.reshape(-1, 3, 3), centre_local.reshape(-1, 3), prim,
+                                       rays_o.reshape(-1, 3), rays_d.reshape(-1, 3), near, far, t, dt, m,
+                                       with_added=prim_stats)
     prim_alpha = None
     if prim_stats:  # empty slots added 0, so their stand-in row (clamped to the batch item's box 0) is harmless
         prim_alpha = torch.zeros(b * p, dtype=added.dtype).scatter_reduce(

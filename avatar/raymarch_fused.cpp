@@ -4,16 +4,20 @@
 // same trilinear lookup with border clamping, same additive opacity with MVP's early
 // termination), but without materialising the (sample, primitive) pairs and their 8 corner
 // gathers as tensors: a pair costs a few dozen flops and 8 reads here instead of ~30 tensor
-// ops over hundreds of thousands of pairs. The backward pass recomputes each pair's lookup
-// (cheaper than storing it) and writes the gradients of the voxel table and of each ray's
-// origin and direction in every candidate box's local frame; PyTorch's autograd carries the
-// latter on to the boxes' poses.
+// ops over hundreds of thousands of pairs. Each ray is taken into each candidate box's local
+// frame here too (a 3 x 3 matrix and an offset per box), so no [R, K, 3, 3] gather is built.
+// The backward pass recomputes each pair's lookup (cheaper than storing it) and writes the
+// gradients of the voxel table and of every box's local frame (matrix and offset); PyTorch's
+// autograd carries the latter on to the boxes' poses.
 //
-// Layout (R = rays of the whole batch, K = candidate boxes per ray, S = samples per ray):
-//   table      [N, 4]      voxels (r, g, b, density), rows z-major per primitive
-//   base       [R, K]      row of each candidate's voxel (0, 0, 0); -1 where the slot is empty
+// Layout (R = rays of the whole batch, K = candidate boxes per ray, S = samples per ray,
+// Q = boxes of the whole batch):
+//   table      [N, 4]      voxels (r, g, b, density), rows z-major per box (M^3 rows each)
+//   lfh        [Q, 3, 3]   local_from_head of each box: y_j = sum_i x_i lfh[i][j] - cl_j
+//   cl         [Q, 3]      the box centre in those coordinates
+//   prim       [R, K]      box (row of lfh) of each candidate; -1 where the slot is empty
+//   ro, rd     [R, 3]      ray origins and unit directions, head space
 //   near, far  [R, K]      the candidate box's entry and exit distance along the ray
-//   o, d       [R, K, 3]   the ray's origin and direction in the box's local frame (y = o + t d)
 //   t          [R, S]      sample distances;  dt [R] step length
 // A (sample, candidate) pair contributes when near <= t <= far (the same test as the
 // PyTorch path, so both keep exactly the same pairs).
@@ -21,7 +25,10 @@
 // Both passes stop a ray at its first sample past opacity 1 (MVP's early termination): every
 // later sample has a share of 0 and no gradient, so skipping it changes no bit of the outputs
 // (the tensor path computes and multiplies those samples by 0). On a trained head most rays
-// saturate: forward + backward on alice's (ours, seed 0, 8 x 256 training rays) 29.2 -> 20.4 ms.
+// saturate. Forward + backward on alice's (ours, seed 0, 8 x 256 training rays, one thread):
+// 29.2 ms before either change, 20.4 ms with early termination, 13.2 ms with the local frames
+// computed here as well (they were a [R, K, 3, 3] gather and two einsums in PyTorch), 11.6 ms
+// with the candidates' bounding-sphere cull (see `candidates`).
 //
 // Forward runs rays in parallel (each ray writes only its own outputs). Backward runs rays
 // in order on one thread: its scatter into the voxel-table gradient is then deterministic.
@@ -78,14 +85,32 @@ inline void lookup(const scalar_t* table, int64_t base, int64_t m, const scalar_
 // One ray's K candidate boxes: where the ray enters and leaves each, and the ray in its frame.
 template <typename scalar_t>
 struct RayBoxes {
-  const int64_t* base;  // [K] table row of the box's voxel (0, 0, 0), -1 for an empty slot
+  int64_t k;
   const scalar_t *near, *far;  // [K]
-  const scalar_t *o, *d;  // [K, 3]
+  std::vector<int64_t> base;   // [K] table row of the box's voxel (0, 0, 0), -1 for an empty slot
+  std::vector<scalar_t> o, d;  // [K, 3] the ray's origin and direction in the box's local frame
 
-  RayBoxes(const int64_t* base_all, const scalar_t* near_all, const scalar_t* far_all, const scalar_t* o_all,
-           const scalar_t* d_all, int64_t ray, int64_t k)
-      : base(base_all + ray * k), near(near_all + ray * k), far(far_all + ray * k), o(o_all + ray * k * 3),
-        d(d_all + ray * k * 3) {}
+  explicit RayBoxes(int64_t k_) : k(k_), near(nullptr), far(nullptr), base(k_), o(k_ * 3), d(k_ * 3) {}
+
+  // Ray `ray`'s candidates: y = o + t d in each box's frame, from its lfh and cl rows.
+  void load(const scalar_t* lfh, const scalar_t* cl, const int64_t* prim_all, const scalar_t* ro_all,
+            const scalar_t* rd_all, const scalar_t* near_all, const scalar_t* far_all, int64_t ray, int64_t m3) {
+    near = near_all + ray * k;
+    far = far_all + ray * k;
+    const int64_t* prim = prim_all + ray * k;
+    const scalar_t *ro = ro_all + ray * 3, *rd = rd_all + ray * 3;
+    for (int64_t ki = 0; ki < k; ++ki) {
+      const int64_t q = prim[ki];
+      base[ki] = q < 0 ? -1 : q * m3;
+      if (q < 0) continue;
+      const scalar_t* mat = lfh + q * 9;
+      const scalar_t* c = cl + q * 3;
+      for (int j = 0; j < 3; ++j) {
+        o[ki * 3 + j] = ro[0] * mat[j] + ro[1] * mat[3 + j] + ro[2] * mat[6 + j] - c[j];
+        d[ki * 3 + j] = rd[0] * mat[j] + rd[1] * mat[3 + j] + rd[2] * mat[6 + j];
+      }
+    }
+  }
 
   // Whether the sample at distance ts lies in box ki (the PyTorch path's test); if so, y = its local position.
   inline bool sample_in(int64_t ki, scalar_t ts, scalar_t y[3]) const {
@@ -129,16 +154,18 @@ inline int64_t samples_until_opaque(const scalar_t* sigma, scalar_t step, int64_
   return s;
 }
 
-void check_inputs(const torch::Tensor& table, const torch::Tensor& base, const torch::Tensor& near,
-                  const torch::Tensor& far, const torch::Tensor& o, const torch::Tensor& d, const torch::Tensor& t,
-                  const torch::Tensor& dt) {
-  for (const auto* x : {&table, &base, &near, &far, &o, &d, &t, &dt}) {
+void check_inputs(const torch::Tensor& table, const torch::Tensor& lfh, const torch::Tensor& cl,
+                  const torch::Tensor& prim, const torch::Tensor& ro, const torch::Tensor& rd,
+                  const torch::Tensor& near, const torch::Tensor& far, const torch::Tensor& t, const torch::Tensor& dt) {
+  for (const auto* x : {&table, &lfh, &cl, &prim, &ro, &rd, &near, &far, &t, &dt}) {
     TORCH_CHECK(x->device().is_cpu(), "fused raymarch: CPU tensors only");
     TORCH_CHECK(x->is_contiguous(), "fused raymarch: contiguous tensors only");
   }
-  TORCH_CHECK(base.scalar_type() == torch::kInt64, "fused raymarch: base rows must be int64");
+  TORCH_CHECK(prim.scalar_type() == torch::kInt64, "fused raymarch: candidate boxes must be int64");
   TORCH_CHECK(table.dim() == 2 && table.size(1) == 4, "fused raymarch: table must be [N, 4]");
-  for (const auto* x : {&near, &far, &o, &d, &t, &dt})
+  TORCH_CHECK(lfh.dim() == 3 && lfh.size(1) == 3 && lfh.size(2) == 3, "fused raymarch: lfh must be [Q, 3, 3]");
+  TORCH_CHECK(cl.dim() == 2 && cl.size(1) == 3 && cl.size(0) == lfh.size(0), "fused raymarch: cl must be [Q, 3]");
+  for (const auto* x : {&lfh, &cl, &ro, &rd, &near, &far, &t, &dt})
     TORCH_CHECK(x->scalar_type() == table.scalar_type(), "fused raymarch: all float inputs share one dtype");
 }
 
@@ -147,11 +174,11 @@ void check_inputs(const torch::Tensor& table, const torch::Tensor& base, const t
 // Returns rgb [R, 3], alpha [R], the per-sample sums the backward pass needs (sigma [R, S] and
 // sigma_rgb [R, S, 3]) and, if with_added, the opacity each candidate box added to its ray below
 // saturation, added [R, K] (else an empty tensor): the pruning statistics' input.
-std::vector<torch::Tensor> forward(torch::Tensor table, torch::Tensor base, torch::Tensor near, torch::Tensor far,
-                                   torch::Tensor o, torch::Tensor d, torch::Tensor t, torch::Tensor dt, int64_t m,
-                                   bool with_added) {
-  check_inputs(table, base, near, far, o, d, t, dt);
-  const int64_t r = t.size(0), s = t.size(1), k = base.size(1);
+std::vector<torch::Tensor> forward(torch::Tensor table, torch::Tensor lfh, torch::Tensor cl, torch::Tensor prim,
+                                   torch::Tensor ro, torch::Tensor rd, torch::Tensor near, torch::Tensor far,
+                                   torch::Tensor t, torch::Tensor dt, int64_t m, bool with_added) {
+  check_inputs(table, lfh, cl, prim, ro, rd, near, far, t, dt);
+  const int64_t r = t.size(0), s = t.size(1), k = prim.size(1), m3 = m * m * m;
   auto opts = table.options();
   auto rgb = torch::zeros({r, 3}, opts);
   auto alpha = torch::zeros({r}, opts);
@@ -160,9 +187,10 @@ std::vector<torch::Tensor> forward(torch::Tensor table, torch::Tensor base, torc
   auto added = with_added ? torch::zeros({r, k}, opts) : torch::empty({0}, opts);
   AT_DISPATCH_FLOATING_TYPES(table.scalar_type(), "fused_raymarch_forward", [&] {
     const scalar_t* tab = table.data_ptr<scalar_t>();
-    const int64_t* base_p = base.data_ptr<int64_t>();
+    const scalar_t *lfh_p = lfh.data_ptr<scalar_t>(), *cl_p = cl.data_ptr<scalar_t>();
+    const int64_t* prim_p = prim.data_ptr<int64_t>();
+    const scalar_t *ro_p = ro.data_ptr<scalar_t>(), *rd_p = rd.data_ptr<scalar_t>();
     const scalar_t *nr_p = near.data_ptr<scalar_t>(), *fr_p = far.data_ptr<scalar_t>();
-    const scalar_t *op = o.data_ptr<scalar_t>(), *dp = d.data_ptr<scalar_t>();
     const scalar_t *tp = t.data_ptr<scalar_t>(), *dtp = dt.data_ptr<scalar_t>();
     scalar_t *rgb_p = rgb.data_ptr<scalar_t>(), *alpha_p = alpha.data_ptr<scalar_t>();
     scalar_t *sig_p = sigma.data_ptr<scalar_t>(), *srgb_p = sigma_rgb.data_ptr<scalar_t>();
@@ -171,8 +199,9 @@ std::vector<torch::Tensor> forward(torch::Tensor table, torch::Tensor base, torc
       std::vector<scalar_t> shares(with_added ? s : 0);
       Lookup<scalar_t> lk;
       scalar_t y[3];
+      RayBoxes<scalar_t> boxes(k);
       for (int64_t ri = begin; ri < end; ++ri) {
-        const RayBoxes<scalar_t> boxes(base_p, nr_p, fr_p, op, dp, ri, k);
+        boxes.load(lfh_p, cl_p, prim_p, ro_p, rd_p, nr_p, fr_p, ri, m3);
         scalar_t* sg = sig_p + ri * s;  // stays 0 past the ray's last sample that matters
         scalar_t* sc = srgb_p + ri * s * 3;
         const scalar_t* t_r = tp + ri * s;
@@ -223,29 +252,32 @@ std::vector<torch::Tensor> forward(torch::Tensor table, torch::Tensor base, torc
 }
 
 // Gradients of the voxel table [N, 4] and of the local-frame ray origins and directions [R, K, 3].
+// Gradients of the voxel table [N, 4] and of every box's local frame: lfh [Q, 3, 3] and cl [Q, 3].
 std::vector<torch::Tensor> backward(torch::Tensor grad_rgb, torch::Tensor grad_alpha, torch::Tensor table,
-                                    torch::Tensor base, torch::Tensor near, torch::Tensor far, torch::Tensor o,
-                                    torch::Tensor d, torch::Tensor t, torch::Tensor dt, torch::Tensor sigma,
-                                    torch::Tensor sigma_rgb, int64_t m) {
-  check_inputs(table, base, near, far, o, d, t, dt);
+                                    torch::Tensor lfh, torch::Tensor cl, torch::Tensor prim, torch::Tensor ro,
+                                    torch::Tensor rd, torch::Tensor near, torch::Tensor far, torch::Tensor t,
+                                    torch::Tensor dt, torch::Tensor sigma, torch::Tensor sigma_rgb, int64_t m) {
+  check_inputs(table, lfh, cl, prim, ro, rd, near, far, t, dt);
   grad_rgb = grad_rgb.contiguous();
   grad_alpha = grad_alpha.contiguous();
-  const int64_t r = t.size(0), s = t.size(1), k = base.size(1);
+  const int64_t r = t.size(0), s = t.size(1), k = prim.size(1), m3 = m * m * m;
   auto grad_table = torch::zeros_like(table);
-  auto grad_o = torch::zeros_like(o);
-  auto grad_d = torch::zeros_like(d);
+  auto grad_lfh = torch::zeros_like(lfh);
+  auto grad_cl = torch::zeros_like(cl);
   AT_DISPATCH_FLOATING_TYPES(table.scalar_type(), "fused_raymarch_backward", [&] {
     const scalar_t* tab = table.data_ptr<scalar_t>();
-    const int64_t* bs_all = base.data_ptr<int64_t>();
+    const scalar_t *lfh_p = lfh.data_ptr<scalar_t>(), *cl_p = cl.data_ptr<scalar_t>();
+    const int64_t* prim_all = prim.data_ptr<int64_t>();
+    const scalar_t *ro_all = ro.data_ptr<scalar_t>(), *rd_all = rd.data_ptr<scalar_t>();
     const scalar_t *nr_all = near.data_ptr<scalar_t>(), *fr_all = far.data_ptr<scalar_t>();
-    const scalar_t *op_all = o.data_ptr<scalar_t>(), *dp_all = d.data_ptr<scalar_t>();
     const scalar_t *tp_all = t.data_ptr<scalar_t>(), *dtp = dt.data_ptr<scalar_t>();
     const scalar_t *sig_all = sigma.data_ptr<scalar_t>(), *srgb_all = sigma_rgb.data_ptr<scalar_t>();
     const scalar_t *g_rgb = grad_rgb.data_ptr<scalar_t>(), *g_alpha = grad_alpha.data_ptr<scalar_t>();
     scalar_t* g_tab = grad_table.data_ptr<scalar_t>();
-    scalar_t *g_o_all = grad_o.data_ptr<scalar_t>(), *g_d_all = grad_d.data_ptr<scalar_t>();
-    std::vector<scalar_t> before(s), g_sigma(s), g_c(s * 3);
+    scalar_t *g_lfh = grad_lfh.data_ptr<scalar_t>(), *g_cl = grad_cl.data_ptr<scalar_t>();
+    std::vector<scalar_t> before(s), g_sigma(s), g_c(s * 3), g_o(k * 3), g_d(k * 3);
     Lookup<scalar_t> lk;
+    RayBoxes<scalar_t> boxes(k);
     for (int64_t ri = 0; ri < r; ++ri) {
       const scalar_t* sg = sig_all + ri * s;
       const scalar_t* sc = srgb_all + ri * s * 3;
@@ -274,8 +306,9 @@ std::vector<torch::Tensor> backward(torch::Tensor grad_rgb, torch::Tensor grad_a
         g_sigma[si] = (g_op_own + later + g_acc) * step;
         later += -g_q / denom;
       }
-      const RayBoxes<scalar_t> boxes(bs_all, nr_all, fr_all, op_all, dp_all, ri, k);
-      scalar_t *g_o = g_o_all + ri * k * 3, *g_d = g_d_all + ri * k * 3;
+      boxes.load(lfh_p, cl_p, prim_all, ro_all, rd_all, nr_all, fr_all, ri, m3);
+      std::fill(g_o.begin(), g_o.end(), scalar_t(0));
+      std::fill(g_d.begin(), g_d.end(), scalar_t(0));
       const scalar_t* tp = tp_all + ri * s;
       scalar_t y[3];
       for (int64_t si = 0; si < used; ++si) {
@@ -323,19 +356,33 @@ std::vector<torch::Tensor> backward(torch::Tensor grad_rgb, torch::Tensor grad_a
           }
         }
       }
+      // The ray in box q's frame is o_j = sum_i ro_i lfh[i][j] - cl_j, d_j = sum_i rd_i lfh[i][j].
+      const int64_t* prim_r = prim_all + ri * k;
+      const scalar_t *o = ro_all + ri * 3, *d = rd_all + ri * 3;
+      for (int64_t ki = 0; ki < k; ++ki) {
+        const int64_t q = prim_r[ki];
+        if (q < 0) continue;
+        scalar_t* gm = g_lfh + q * 9;
+        for (int i = 0; i < 3; ++i)
+          for (int j = 0; j < 3; ++j) gm[i * 3 + j] += o[i] * g_o[ki * 3 + j] + d[i] * g_d[ki * 3 + j];
+        for (int j = 0; j < 3; ++j) g_cl[q * 3 + j] -= g_o[ki * 3 + j];
+      }
     }
   });
-  return {grad_table, grad_o, grad_d};
+  return {grad_table, grad_lfh, grad_cl};
 }
 
 // The boxes each ray hits, in box order: cand [R, K] (box index within the ray's batch item, -1
 // for an empty slot; K = the most boxes any ray hits, at least 1), their entry and exit distances
 // near, far [R, K], and the ray's span t_min, t_max [R] over them (0, 0 for a ray that hits
 // none). The slab test is the one of avatar.raymarch.box_intervals.
-//   rays_o, rays_d [B, Rb, 3]; local_from_head [B, P, 3, 3]; centre_local [B, P, 3]
+// A box whose bounding sphere (centre, radius) the ray's line misses is skipped before the slab
+// test: a ray hits ~30 of the tiny head's 256 boxes, and the sphere test costs a third of the slab
+// test. The radius is padded by 0.1% so that rounding never culls a box the slab test would keep.
+//   rays_o, rays_d [B, Rb, 3]; local_from_head [B, P, 3, 3]; centre_local, centre [B, P, 3]; radius [B, P]
 std::vector<torch::Tensor> candidates(torch::Tensor rays_o, torch::Tensor rays_d, torch::Tensor local_from_head,
-                                      torch::Tensor centre_local) {
-  for (const auto* x : {&rays_o, &rays_d, &local_from_head, &centre_local}) {
+                                      torch::Tensor centre_local, torch::Tensor centre, torch::Tensor radius) {
+  for (const auto* x : {&rays_o, &rays_d, &local_from_head, &centre_local, &centre, &radius}) {
     TORCH_CHECK(x->device().is_cpu() && x->is_contiguous(), "fused raymarch: contiguous CPU tensors only");
     TORCH_CHECK(x->scalar_type() == rays_o.scalar_type(), "fused raymarch: all inputs share one dtype");
   }
@@ -350,6 +397,7 @@ std::vector<torch::Tensor> candidates(torch::Tensor rays_o, torch::Tensor rays_d
   AT_DISPATCH_FLOATING_TYPES(rays_o.scalar_type(), "fused_raymarch_candidates", [&] {
     const scalar_t *ro = rays_o.data_ptr<scalar_t>(), *rd = rays_d.data_ptr<scalar_t>();
     const scalar_t *lfh = local_from_head.data_ptr<scalar_t>(), *cl = centre_local.data_ptr<scalar_t>();
+    const scalar_t *ctr = centre.data_ptr<scalar_t>(), *rad = radius.data_ptr<scalar_t>();
     int64_t* cand_p = all_cand.data_ptr<int64_t>();
     scalar_t *near_p = all_near.data_ptr<scalar_t>(), *far_p = all_far.data_ptr<scalar_t>();
     int64_t* count_p = counts.data_ptr<int64_t>();
@@ -360,9 +408,16 @@ std::vector<torch::Tensor> candidates(torch::Tensor rays_o, torch::Tensor rays_d
         const int64_t bi = ri / rb;
         const scalar_t* o = ro + ri * 3;
         const scalar_t* d = rd + ri * 3;
+        const scalar_t dd = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
         int64_t n = 0;
         scalar_t lo = std::numeric_limits<scalar_t>::max(), hi = std::numeric_limits<scalar_t>::lowest();
         for (int64_t pi = 0; pi < p; ++pi) {
+          // Squared distance from the box centre to the ray's line: |w|^2 - (w.d)^2 / |d|^2.
+          const scalar_t* cw = ctr + (bi * p + pi) * 3;
+          const scalar_t w0 = cw[0] - o[0], w1 = cw[1] - o[1], w2 = cw[2] - o[2];
+          const scalar_t wd = w0 * d[0] + w1 * d[1] + w2 * d[2];
+          const scalar_t bound = rad[bi * p + pi] * scalar_t(1.001);
+          if (w0 * w0 + w1 * w1 + w2 * w2 - wd * wd / dd > bound * bound) continue;
           const scalar_t* mat = lfh + (bi * p + pi) * 9;  // y_j = sum_i x_i mat[i][j] - c_j
           const scalar_t* c = cl + (bi * p + pi) * 3;
           scalar_t t_near = std::numeric_limits<scalar_t>::lowest(), t_far = std::numeric_limits<scalar_t>::max();

@@ -80,39 +80,43 @@ def fused_module(required: bool):
 
 class _FusedRaymarch(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, table, o_local, d_local, base, near, far, t, dt, m, with_added):
+    def forward(ctx, table, lfh, cl, prim, rays_o, rays_d, near, far, t, dt, m, with_added):
         rgb, alpha, sigma, sigma_rgb, added = fused_module(required=True).forward(
-            table, base, near, far, o_local, d_local, t, dt, m, with_added)
-        ctx.save_for_backward(table, o_local, d_local, base, near, far, t, dt, sigma, sigma_rgb)
+            table, lfh, cl, prim, rays_o, rays_d, near, far, t, dt, m, with_added)
+        ctx.save_for_backward(table, lfh, cl, prim, rays_o, rays_d, near, far, t, dt, sigma, sigma_rgb)
         ctx.voxels_per_side = m
         ctx.mark_non_differentiable(added)
         return rgb, alpha, added
 
     @staticmethod
     def backward(ctx, grad_rgb, grad_alpha, _grad_added):
-        table, o_local, d_local, base, near, far, t, dt, sigma, sigma_rgb = ctx.saved_tensors
-        grad_table, grad_o, grad_d = fused_module(required=True).backward(
-            grad_rgb, grad_alpha, table, base, near, far, o_local, d_local, t, dt, sigma, sigma_rgb,
+        table, lfh, cl, prim, rays_o, rays_d, near, far, t, dt, sigma, sigma_rgb = ctx.saved_tensors
+        grad_table, grad_lfh, grad_cl = fused_module(required=True).backward(
+            grad_rgb, grad_alpha, table, lfh, cl, prim, rays_o, rays_d, near, far, t, dt, sigma, sigma_rgb,
             ctx.voxels_per_side)
-        return grad_table, grad_o, grad_d, None, None, None, None, None, None, None
+        return (grad_table, grad_lfh, grad_cl) + (None,) * 9
 
 
-def fused_raymarch(table: torch.Tensor, o_local: torch.Tensor, d_local: torch.Tensor, base: torch.Tensor,
-                   near: torch.Tensor, far: torch.Tensor, t: torch.Tensor, dt: torch.Tensor, m: int,
-                   with_added: bool = False) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def fused_raymarch(table: torch.Tensor, local_from_head: torch.Tensor, centre_local: torch.Tensor,
+                   prim: torch.Tensor, rays_o: torch.Tensor, rays_d: torch.Tensor, near: torch.Tensor,
+                   far: torch.Tensor, t: torch.Tensor, dt: torch.Tensor, m: int, with_added: bool = False
+                   ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Colour [R, 3] and opacity [R] of R rays, each against its K candidate boxes, and ``added``.
 
     ``added`` [R, K] (empty unless ``with_added``; not differentiable): the opacity each
     candidate box added to its ray below saturation (``RenderResult.prim_alpha``'s input).
 
     Args:
-        table: [N, 4] voxels (linear RGB, density), z-major M^3 rows per primitive.
-        o_local, d_local: [R, K, 3] the ray's origin and direction in each candidate's local
-            frame (the box is [-1, 1]^3); differentiable.
-        base: [R, K] int64 table row of each candidate's voxel (0, 0, 0), -1 for an empty slot.
+        table: [Q*M^3, 4] voxels (linear RGB, density), z-major M^3 rows per box; differentiable.
+        local_from_head: [Q, 3, 3] per box, ``y = x @ local_from_head - centre_local`` takes a
+            head-space point into the box's [-1, 1]^3; differentiable.
+        centre_local: [Q, 3] per box (see above); differentiable.
+        prim: [R, K] int64 box of each candidate (row of ``local_from_head``), -1 for an empty slot.
+        rays_o, rays_d: [R, 3] head-space origins and unit directions (not differentiated).
         near, far: [R, K] entry and exit distance of the ray in each candidate box.
         t: [R, S] sample distances; dt: [R] step length.
         m: voxels per side.
     """
-    tensors = [x.contiguous() for x in (table, o_local, d_local, base, near, far, t, dt)]
+    tensors = [x.contiguous() for x in (table, local_from_head, centre_local, prim, rays_o.detach(), rays_d.detach(),
+                                        near, far, t, dt)]
     return _FusedRaymarch.apply(*tensors, int(m), bool(with_added))

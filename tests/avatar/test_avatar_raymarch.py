@@ -202,3 +202,24 @@ def test_fused_kernel_stops_each_ray_once_it_is_opaque(fused_kernel):
     assert float(grads[0][:, 0].abs().sum()) > 0 and float(grads[0][:, 1].abs().sum()) == 0
     tensor_img, _ = render(float("nan"), "torch")  # control: the hidden voxels do lie on the rays' samples
     assert bool(torch.isnan(tensor_img.rgb).any())
+
+
+def test_fused_kernel_keeps_rays_that_only_clip_a_box_corner(fused_kernel):
+    """The kernel culls boxes by their bounding sphere before the slab test; a ray through a corner is kept."""
+    dtype = torch.float64
+    rot = torch.tensor(Rotation.from_euler("xyz", [30, 40, 50], degrees=True).as_matrix(), dtype=dtype)
+    half = torch.tensor([0.3, 0.2, 0.1], dtype=dtype)
+    signs = torch.tensor([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=dtype)
+    corners = (signs * half * 0.98) @ rot.T  # [8, 3] just inside each corner, head space
+    g = torch.Generator().manual_seed(1)
+    dirs = torch.nn.functional.normalize(torch.randn(8, 3, generator=g, dtype=dtype), dim=-1)
+    # Rays through those points along random directions, from 3 m back: each passes close to |half| from the centre.
+    origins = corners - 3.0 * dirs
+    prims = Primitives(torch.zeros(1, 1, 3, dtype=dtype), rot[None, None], half[None, None],
+                       torch.rand(1, 1, 2, 2, 2, 3, generator=g, dtype=dtype),
+                       torch.full((1, 1, 2, 2, 2), 5.0, dtype=dtype))
+    fused_res = raymarch(prims, origins[None], dirs[None], steps=8, kernel=fused_kernel)
+    tensor_res = raymarch(prims, origins[None], dirs[None], steps=8, kernel="torch")
+    assert bool((tensor_res.alpha > 0).all())  # every ray does cross the box
+    torch.testing.assert_close(fused_res.alpha, tensor_res.alpha, rtol=1e-9, atol=1e-12)
+    torch.testing.assert_close(fused_res.rgb, tensor_res.rgb, rtol=1e-9, atol=1e-12)
