@@ -4,8 +4,9 @@ On the tiny head's primitives (N=16, M=4, laid out on the ICT face seen from the
 cameras, as at initialisation), for growing ray batches (the tiny preset's 8 x 256 rays,
 then 4x and 16x that) and for a whole 64x85 image: forward time, forward + backward time,
 and the bytes autograd keeps for the backward pass (every tensor saved for backward,
-counted once); then training iterations per second of the whole tiny training step with
-each kernel. The two paths' images and gradients are compared on the way (max abs
+counted once); the same on an opaque head (the initial head's densities x20, so that rays
+saturate as on a trained head and the fused kernel's early termination shows); then
+training iterations per second of the whole tiny training step with each kernel. The two paths' images and gradients are compared on the way (max abs
 difference). Writes ``bench-results/raymarch.json``. Timings on a shared CPU are noisy:
 each is the median of several runs.
 """
