@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import logging
 import shutil
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -181,12 +182,16 @@ def test_models_trained_side_by_side_are_the_models_trained_one_after_another(ca
 def test_a_model_failing_side_by_side_stops_the_other_and_both_resume(capture, tmp_path, monkeypatch, caplog):
     params = {**BASE, "iterations": 10, "lpips": False, "curve_every": 0, "parallel_models": 2}
     real_step = trainer_mod.ModelTrainer.step
+    ours_held = threading.Event()
 
     def failing_step(self):
         if self.r.kind == "travatar" and self.state.iteration == 6:
+            # Fail only once ours is held, so ours is mid-run whichever thread is faster.
+            assert ours_held.wait(timeout=60)
             raise RuntimeError("travatar broke")
         if self.r.kind == "ours" and self.state.iteration == 3:
             # Hold ours mid-run until the failure beside it asks it to stop.
+            ours_held.set()
             assert self.stop_event is not None and self.stop_event.wait(timeout=60)
         return real_step(self)
 
