@@ -18,13 +18,13 @@ Three implementations give the same images:
 - ``raymarch_reference``: obvious and slow; loops over primitives (``grid_sample`` on every
   sample) and over steps, stopping when every ray is opaque. For tests.
 - ``raymarch(kernel="fused")``: the fused C++ CPU kernel (``avatar.raymarch_fused``), one
-  pass per ray over its samples and boxes, nothing per (sample, box) pair kept, and each ray
-  stopped at its first sample past opacity 1 (bit for bit the same result: later samples
-  have a share of 0; on a trained head forward + backward takes 30% less time); what
+  pass per ray over its samples and boxes, nothing per (sample, box) pair kept, each ray
+  taken into its candidate boxes' frames in the kernel, and each ray stopped at its first
+  sample past opacity 1 (bit for bit the same result: later samples have a share of 0); what
   ``kernel="auto"`` runs on the CPU. Measured against the tensor path on the tiny head
-  (``python -m benchmarks.bench_raymarch``, 1 thread, two runs): forward + backward 2.7-3.3x
-  faster at the tiny preset's 2048 rays and 6.0-7.6x at 16 times that, 4-6x less memory kept
-  for backward, the tiny training step 1.9-2.0x the iterations/s (20.2-21.3 against 10.6). In
+  (``python -m benchmarks.bench_raymarch``, 1 thread, two runs): forward + backward 7.4-8.2x
+  faster at the tiny preset's 2048 rays and 14.7-15.0x at 16 times that, 6.6x less memory kept
+  for backward, the tiny training step 2.6x the iterations/s (25.6-25.9 against 9.9-10.0). In
   float64 both paths agree to ~1e-14; in float32, a sample within rounding of a box face
   can fall on either side, so a few rays in 10^4 differ by up to ~3e-3.
 - ``raymarch(kernel="torch")``: the tensor-op fast path, CPU or GPU; keeps per ray only the
