@@ -35,6 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.train_runs import ROOT, run_train, tiny_train_params, train_inputs
+from pipeline.workspace import write_json_atomic
 
 SPLITS = ("novel_light", "novel_perf", "novel_both", "train")
 MODELS = ("ours", "travatar")
@@ -123,7 +124,7 @@ def main() -> dict:
             print(f"seed {seed}: " + ", ".join(f"{s} {runs[seed][f'ours_{s}']:.2f}/{runs[seed][f'travatar_{s}']:.2f}"
                                                 for s in SPLITS) + " (ours/TRAvatar*)", flush=True)
             # Each seed costs minutes: keep it at once, so a stopped run resumes from here.
-            _write_results(path, {"subject": subject, "source": source, "iterations": iterations,
+            write_json_atomic(path, {"subject": subject, "source": source, "iterations": iterations,
                                   "seeds": sorted(runs), "params": base, "complete": False,
                                   "runs": {str(k): v for k, v in sorted(runs.items())},
                                   "summary": _summary(runs, sorted(runs))})
@@ -154,7 +155,7 @@ def main() -> dict:
             results["against_default"] = compared
         elif baseline and not (out / baseline_name).exists():
             print(f"SEEDS_BASELINE={baseline!r}: no {baseline_name} in {out}; nothing to compare with")
-    _write_results(path, results)
+    write_json_atomic(path, results)
     return results
 
 
@@ -170,14 +171,6 @@ def _tag(variable: str) -> str:
     if tag and not tag.replace("-", "").replace("_", "").isalnum():
         raise SystemExit(f"{variable}={tag!r}: use letters, digits, '-' and '_' (it names a results file)")
     return tag
-
-
-def _write_results(path: Path, results: dict) -> None:
-    """Write ``results`` to ``path`` whole or not at all (a stop mid-write leaves the previous file)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    part = path.with_name(path.name + ".part")
-    part.write_text(json.dumps(results, indent=1))
-    os.replace(part, path)
 
 
 def _runs_matching(path: Path, **expected: object) -> dict[int, dict]:
