@@ -388,66 +388,105 @@ std::vector<torch::Tensor> candidates(torch::Tensor rays_o, torch::Tensor rays_d
   }
   const int64_t b = rays_o.size(0), rb = rays_o.size(1), p = local_from_head.size(1), r = b * rb;
   auto opts = rays_o.options();
-  auto all_cand = torch::full({r, p}, -1, opts.dtype(torch::kInt64));
-  auto all_near = torch::zeros({r, p}, opts);
-  auto all_far = torch::zeros({r, p}, opts);
+  // Each ray's hits go to a row of `cap` slots, left uninitialised. Rows of P slots, filled, made
+  // three [R, P] scratch tensors: 270 MB (float32) for the paper's 4096 boxes and 4096 rays, while a ray hits
+  // a few dozen boxes (at most 38 of 256 on the initial tiny head); on tiny the fills cost 0.2 ms
+  // a training step.
+  // A ray that hits more than `cap` boxes makes the scan run again with rows of P slots: a hit is
+  // never dropped.
+  const int64_t cap = std::min<int64_t>(p, 64);
   auto counts = torch::zeros({r}, opts.dtype(torch::kInt64));
   auto t_min = torch::zeros({r}, opts);
   auto t_max = torch::zeros({r}, opts);
-  AT_DISPATCH_FLOATING_TYPES(rays_o.scalar_type(), "fused_raymarch_candidates", [&] {
-    const scalar_t *ro = rays_o.data_ptr<scalar_t>(), *rd = rays_d.data_ptr<scalar_t>();
-    const scalar_t *lfh = local_from_head.data_ptr<scalar_t>(), *cl = centre_local.data_ptr<scalar_t>();
-    const scalar_t *ctr = centre.data_ptr<scalar_t>(), *rad = radius.data_ptr<scalar_t>();
-    int64_t* cand_p = all_cand.data_ptr<int64_t>();
-    scalar_t *near_p = all_near.data_ptr<scalar_t>(), *far_p = all_far.data_ptr<scalar_t>();
-    int64_t* count_p = counts.data_ptr<int64_t>();
-    scalar_t *tmin_p = t_min.data_ptr<scalar_t>(), *tmax_p = t_max.data_ptr<scalar_t>();
-    const scalar_t tiny = scalar_t(1e-12);
-    at::parallel_for(0, r, 64, [&](int64_t begin, int64_t end) {
-      for (int64_t ri = begin; ri < end; ++ri) {
-        const int64_t bi = ri / rb;
-        const scalar_t* o = ro + ri * 3;
-        const scalar_t* d = rd + ri * 3;
-        const scalar_t dd = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
-        int64_t n = 0;
-        scalar_t lo = std::numeric_limits<scalar_t>::max(), hi = std::numeric_limits<scalar_t>::lowest();
-        for (int64_t pi = 0; pi < p; ++pi) {
-          // Squared distance from the box centre to the ray's line: |w|^2 - (w.d)^2 / |d|^2.
-          const scalar_t* cw = ctr + (bi * p + pi) * 3;
-          const scalar_t w0 = cw[0] - o[0], w1 = cw[1] - o[1], w2 = cw[2] - o[2];
-          const scalar_t wd = w0 * d[0] + w1 * d[1] + w2 * d[2];
-          const scalar_t bound = rad[bi * p + pi] * scalar_t(1.001);
-          if (w0 * w0 + w1 * w1 + w2 * w2 - wd * wd / dd > bound * bound) continue;
-          const scalar_t* mat = lfh + (bi * p + pi) * 9;  // y_j = sum_i x_i mat[i][j] - c_j
-          const scalar_t* c = cl + (bi * p + pi) * 3;
-          scalar_t t_near = std::numeric_limits<scalar_t>::lowest(), t_far = std::numeric_limits<scalar_t>::max();
-          for (int j = 0; j < 3; ++j) {
-            const scalar_t oj = o[0] * mat[j] + o[1] * mat[3 + j] + o[2] * mat[6 + j] - c[j];
-            scalar_t dj = d[0] * mat[j] + d[1] * mat[3 + j] + d[2] * mat[6 + j];
-            if (std::abs(dj) < tiny) dj = std::copysign(tiny, dj);
-            const scalar_t inv = scalar_t(1) / dj;
-            const scalar_t mid = -oj * inv, reach = std::abs(inv);
-            t_near = std::max(t_near, mid - reach);
-            t_far = std::min(t_far, mid + reach);
+  torch::Tensor all_cand, all_near, all_far;
+  auto scan = [&](int64_t width) {
+    all_cand = torch::empty({r, width}, opts.dtype(torch::kInt64));
+    all_near = torch::empty({r, width}, opts);
+    all_far = torch::empty({r, width}, opts);
+    AT_DISPATCH_FLOATING_TYPES(rays_o.scalar_type(), "fused_raymarch_candidates", [&] {
+      const scalar_t *ro = rays_o.data_ptr<scalar_t>(), *rd = rays_d.data_ptr<scalar_t>();
+      const scalar_t *lfh = local_from_head.data_ptr<scalar_t>(), *cl = centre_local.data_ptr<scalar_t>();
+      const scalar_t *ctr = centre.data_ptr<scalar_t>(), *rad = radius.data_ptr<scalar_t>();
+      int64_t* cand_p = all_cand.data_ptr<int64_t>();
+      scalar_t *near_p = all_near.data_ptr<scalar_t>(), *far_p = all_far.data_ptr<scalar_t>();
+      int64_t* count_p = counts.data_ptr<int64_t>();
+      scalar_t *tmin_p = t_min.data_ptr<scalar_t>(), *tmax_p = t_max.data_ptr<scalar_t>();
+      const scalar_t tiny = scalar_t(1e-12);
+      at::parallel_for(0, r, 64, [&](int64_t begin, int64_t end) {
+        for (int64_t ri = begin; ri < end; ++ri) {
+          const int64_t bi = ri / rb;
+          const scalar_t* o = ro + ri * 3;
+          const scalar_t* d = rd + ri * 3;
+          const scalar_t dd = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
+          int64_t n = 0;
+          scalar_t lo = std::numeric_limits<scalar_t>::max(), hi = std::numeric_limits<scalar_t>::lowest();
+          for (int64_t pi = 0; pi < p; ++pi) {
+            // Squared distance from the box centre to the ray's line: |w|^2 - (w.d)^2 / |d|^2.
+            const scalar_t* cw = ctr + (bi * p + pi) * 3;
+            const scalar_t w0 = cw[0] - o[0], w1 = cw[1] - o[1], w2 = cw[2] - o[2];
+            const scalar_t wd = w0 * d[0] + w1 * d[1] + w2 * d[2];
+            const scalar_t bound = rad[bi * p + pi] * scalar_t(1.001);
+            if (w0 * w0 + w1 * w1 + w2 * w2 - wd * wd / dd > bound * bound) continue;
+            const scalar_t* mat = lfh + (bi * p + pi) * 9;  // y_j = sum_i x_i mat[i][j] - c_j
+            const scalar_t* c = cl + (bi * p + pi) * 3;
+            scalar_t t_near = std::numeric_limits<scalar_t>::lowest(), t_far = std::numeric_limits<scalar_t>::max();
+            for (int j = 0; j < 3; ++j) {
+              const scalar_t oj = o[0] * mat[j] + o[1] * mat[3 + j] + o[2] * mat[6 + j] - c[j];
+              scalar_t dj = d[0] * mat[j] + d[1] * mat[3 + j] + d[2] * mat[6 + j];
+              if (std::abs(dj) < tiny) dj = std::copysign(tiny, dj);
+              const scalar_t inv = scalar_t(1) / dj;
+              const scalar_t mid = -oj * inv, reach = std::abs(inv);
+              t_near = std::max(t_near, mid - reach);
+              t_far = std::min(t_far, mid + reach);
+            }
+            t_near = std::max(t_near, scalar_t(0));
+            if (!(t_far > t_near)) continue;
+            if (n < width) {
+              cand_p[ri * width + n] = pi;
+              near_p[ri * width + n] = t_near;
+              far_p[ri * width + n] = t_far;
+            }
+            ++n;
+            lo = std::min(lo, t_near);
+            hi = std::max(hi, t_far);
           }
-          t_near = std::max(t_near, scalar_t(0));
-          if (!(t_far > t_near)) continue;
-          cand_p[ri * p + n] = pi;
-          near_p[ri * p + n] = t_near;
-          far_p[ri * p + n] = t_far;
-          ++n;
-          lo = std::min(lo, t_near);
-          hi = std::max(hi, t_far);
+          count_p[ri] = n;
+          tmin_p[ri] = n ? lo : scalar_t(0);
+          tmax_p[ri] = n ? hi : scalar_t(0);
         }
-        count_p[ri] = n;
-        tmin_p[ri] = n ? lo : scalar_t(0);
-        tmax_p[ri] = n ? hi : scalar_t(0);
+      });
+    });
+  };
+  scan(cap);
+  const int64_t k = std::max<int64_t>(1, r ? counts.max().item<int64_t>() : 1);
+  int64_t width = cap;
+  if (k > cap) {
+    scan(p);
+    width = p;
+  }
+  // The [R, K] result: each ray's hits, then empty slots (-1, 0, 0).
+  auto cand = torch::empty({r, k}, opts.dtype(torch::kInt64));
+  auto near = torch::empty({r, k}, opts);
+  auto far = torch::empty({r, k}, opts);
+  AT_DISPATCH_FLOATING_TYPES(rays_o.scalar_type(), "fused_raymarch_candidates_pack", [&] {
+    const int64_t* src_c = all_cand.data_ptr<int64_t>();
+    const scalar_t *src_n = all_near.data_ptr<scalar_t>(), *src_f = all_far.data_ptr<scalar_t>();
+    int64_t* dst_c = cand.data_ptr<int64_t>();
+    scalar_t *dst_n = near.data_ptr<scalar_t>(), *dst_f = far.data_ptr<scalar_t>();
+    const int64_t* count_p = counts.data_ptr<int64_t>();
+    at::parallel_for(0, r, 256, [&](int64_t begin, int64_t end) {
+      for (int64_t ri = begin; ri < end; ++ri) {
+        const int64_t n = count_p[ri];
+        std::copy(src_c + ri * width, src_c + ri * width + n, dst_c + ri * k);
+        std::copy(src_n + ri * width, src_n + ri * width + n, dst_n + ri * k);
+        std::copy(src_f + ri * width, src_f + ri * width + n, dst_f + ri * k);
+        std::fill(dst_c + ri * k + n, dst_c + (ri + 1) * k, int64_t(-1));
+        std::fill(dst_n + ri * k + n, dst_n + (ri + 1) * k, scalar_t(0));
+        std::fill(dst_f + ri * k + n, dst_f + (ri + 1) * k, scalar_t(0));
       }
     });
   });
-  const int64_t k = std::max<int64_t>(1, r ? counts.max().item<int64_t>() : 1);
-  return {all_cand.narrow(1, 0, k).contiguous(), all_near.narrow(1, 0, k).contiguous(),
-          all_far.narrow(1, 0, k).contiguous(), t_min, t_max};
+  return {cand, near, far, t_min, t_max};
 }
 
 // The GIL is released while a kernel runs: two models trained side by side in two threads

@@ -194,6 +194,24 @@ def _foreground_percentile(data: TrainData, frames: np.ndarray, q: float) -> flo
     return float(np.percentile(foreground, q)) if foreground.size else 1.0
 
 
+def bar_directions(data: TrainData) -> dict[int, np.ndarray]:
+    """Each lit bar's mean head-space direction over its frames (the splits' and TRAvatar*'s light directions)."""
+    dirs = {}
+    for b in np.unique(data.bar):
+        d = data.light_pos_head[data.bar == b]
+        dirs[int(b)] = (d / np.linalg.norm(d, axis=-1, keepdims=True)).mean(0)
+    return dirs
+
+
+def exposure_of(data: TrainData, train_frames: np.ndarray) -> float:
+    """The factor every image is scaled by: the 99.5th percentile of training foreground pixels goes to 1.
+
+    OLAT images are dark (a single bar): scaled, losses are in a sane range and PSNR's peak (1)
+    is the subject's brightest pixels, not an arbitrary unit.
+    """
+    return 1.0 / max(_foreground_percentile(data, _statistics_frames(train_frames), 99.5), 1e-12)
+
+
 def _peak_memory_mb(device: torch.device) -> float:
     if device.type == "cuda":
         return torch.cuda.max_memory_allocated(device) / 2 ** 20
@@ -230,10 +248,7 @@ def train(ctx: StageContext, rank: int = 0, world_size: int = 1, device: torch.d
     inputs = {k: ctx.input(k) for k in ("capture", "stabilize", "track", "matte", "lightcal")}
     data = load_train_data(inputs, params.image_width_px, ctx.log, params.max_frames,
                            resident_limit_gb=params.resident_limit_gb, spill_dir=ctx.cache_dir / f"spill-rank{rank}")
-    bar_dirs = {}
-    for b in np.unique(data.bar):
-        d = data.light_pos_head[data.bar == b]
-        bar_dirs[int(b)] = (d / np.linalg.norm(d, axis=-1, keepdims=True)).mean(0)
+    bar_dirs = bar_directions(data)
     splits = make_splits(data.take, data.bar, bar_dirs, params.held_out_bars, params.held_out_take,
                          params.held_out_fraction)
     train_frames = np.flatnonzero(splits.train)
@@ -242,10 +257,7 @@ def train(ctx: StageContext, rank: int = 0, world_size: int = 1, device: torch.d
                          f"bars {splits.held_out_bars} and take '{splits.held_out_take}'; capture more OLAT frames")
     if lead:
         _write_splits(ctx.out / "splits.json", data, splits)
-    # One global exposure for the data: OLAT images are dark (a single bar), so they are
-    # scaled to put the 99.5th percentile of training foreground pixels at 1. Losses are in a
-    # sane range and PSNR's peak (1) is the subject's brightest pixels, not an arbitrary unit.
-    image_scale = 1.0 / max(_foreground_percentile(data, _statistics_frames(train_frames), 99.5), 1e-12)
+    image_scale = exposure_of(data, train_frames)
     data.images *= image_scale  # in place (a spilled array is rescaled on disk, page by page)
     metrics_scale = {"image_scale": image_scale}
     ctx.log.info("splits: %s", {k: int(splits.mask(k).sum()) for k in ("train",) + SPLITS})

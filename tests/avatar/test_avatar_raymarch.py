@@ -8,7 +8,7 @@ import torch
 from scipy.spatial.transform import Rotation
 
 import avatar.raymarch_fused as fused
-from avatar.raymarch import Primitives, raymarch, raymarch_reference
+from avatar.raymarch import Primitives, _to_local, raymarch, raymarch_reference
 
 
 def _scene(b: int = 2, p: int = 6, m: int = 4, r: int = 40, density: float = 3.0, seed: int = 0,
@@ -223,3 +223,30 @@ def test_fused_kernel_keeps_rays_that_only_clip_a_box_corner(fused_kernel):
     assert bool((tensor_res.alpha > 0).all())  # every ray does cross the box
     torch.testing.assert_close(fused_res.alpha, tensor_res.alpha, rtol=1e-9, atol=1e-12)
     torch.testing.assert_close(fused_res.rgb, tensor_res.rgb, rtol=1e-9, atol=1e-12)
+
+
+def test_fused_kernel_keeps_every_box_of_a_ray_that_crosses_more_than_its_first_guess(fused_kernel):
+    """The candidate search first keeps 64 boxes a ray; a ray through 100 stacked boxes must keep all 100."""
+    dtype = torch.float64
+    p = 100
+    g = torch.Generator().manual_seed(2)
+    centre = torch.zeros(1, p, 3, dtype=dtype)
+    centre[0, :, 2] = torch.linspace(-1.0, 1.0, p, dtype=dtype)  # a column of thin boxes along z
+    half = torch.tensor([0.2, 0.2, 0.01], dtype=dtype).expand(1, p, 3).contiguous()
+    rot = torch.eye(3, dtype=dtype).expand(1, p, 3, 3).contiguous()
+    prims = Primitives(centre, rot, half, torch.rand(1, p, 2, 2, 2, 3, generator=g, dtype=dtype),
+                       torch.rand(1, p, 2, 2, 2, generator=g, dtype=dtype) * 0.5)
+    origins = torch.tensor([[[0.0, 0.0, -3.0], [0.05, -0.05, -3.0], [3.0, 0.0, -3.0]]], dtype=dtype)
+    dirs = torch.tensor([[[0.0, 0.0, 1.0], [0.0, 0.0, 1.0], [0.0, 0.0, 1.0]]], dtype=dtype)  # the last misses
+    module = fused.fused_module(required=True)
+    local_from_head, centre_local = (x.contiguous() for x in _to_local(prims))
+    cand, *_ = module.candidates(origins, dirs, local_from_head, centre_local, centre, half.norm(dim=-1))
+    assert cand.shape == (3, p) and bool((cand[:2] == torch.arange(p)).all()) and bool((cand[2] == -1).all())
+    leaves = [prims.rgb.requires_grad_(), prims.density.requires_grad_()]
+    a = raymarch(prims, origins, dirs, steps=256, kernel=fused_kernel)
+    b = raymarch(prims, origins, dirs, steps=256, kernel="torch")
+    torch.testing.assert_close(a.rgb, b.rgb, rtol=1e-9, atol=1e-12)
+    torch.testing.assert_close(a.alpha, b.alpha, rtol=1e-9, atol=1e-12)
+    w = torch.rand_like(a.rgb)
+    for x, y in zip(_gradients(a, w, leaves), _gradients(b, w, leaves)):
+        torch.testing.assert_close(x, y, rtol=1e-7, atol=1e-10)
