@@ -21,7 +21,9 @@ images of the same frame and camera:
 - ``all_bars_fit``: every training bar, non-negative weights fitted to the target itself: the
   best that any fixed mix of training-light images can do for that image.
 
-The fitted ones see the answer: they are ceilings, not methods. ``clean render`` is the
+The fitted ones see the answer: they are ceilings for methods that blend training-light
+images (TRAvatar* is one), not methods, and not bounds for every model (a model that renders
+no glint can beat a blend that copies other lights' glints to the wrong places). ``clean render`` is the
 held-out image itself, rendered without noise: a perfect model. All are scored as the train
 stage scores (its image scale, PSNR of the split's mean squared error) against the images the
 capture recorded (``vs_captured``, read by the train stage's loader: the same numbers as

@@ -11,6 +11,10 @@ scales them by the train stage's exposure (``image_scale`` from the subject's tr
 else the 99.5th percentile of the clean foreground, as the train stage computes it) and
 reports PSNR(captured, clean) per image and for the mean squared error over all.
 
+The pulses here are spread over the rig; the images the train stage scores its held-out lights
+on can be far noisier (glints of a bar sampled at 3 points): ``bench_light_oracle``'s "clean
+render" column is the same figure on exactly those images.
+
 Knobs: ``TRUTH_SUBJECT`` (default alice; needs ``make subject S=<subject>`` first),
 ``TRUTH_PULSES`` (OLAT pulses, default 4, under bars spread over the rig), ``TRUTH_CAMERAS``
 (every k-th camera, default 3), ``TRUTH_BAR_SAMPLES`` (default 24), ``TRUTH_WIDTH`` (default:
