@@ -1,0 +1,65 @@
+"""The report's light-interpolation section: ``benchmarks/bench_light_oracle.py`` beside the models.
+
+For the report's subject: on the images the train stage scores its held-out lights on, what a
+perfect render scores against the captured targets, what blending the training lights' perfect
+images scores (TRAvatar*'s rule, and blends fitted to the answer), and what ours and TRAvatar*
+score in the train stage's metrics. The oracle is computed for one capture; when the train
+run held out other bars, its figures are not comparable and the section says so.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from stages.report.html import Section, Table
+
+#: The oracle's columns, in the order of its JSON keys' prefixes.
+ORACLE_COLUMNS = (("clean_render_vs_captured", "perfect render"),
+                  ("barycentric_vs_captured", "TRAvatar*'s rule on perfect images"),
+                  ("triangle_fit_vs_captured", "3 bars, fitted"),
+                  ("triangle_tile_fit_vs_captured", "3 bars, fitted per 8 px tile"),
+                  ("all_bars_fit_vs_captured", "all training bars, fitted"))
+SPLIT_LABELS = {"novel_light": "novel light", "novel_both": "both"}
+
+
+def light_oracle_section(bench_folder: Path, subject: str, train: dict[str, float]) -> Section | None:
+    """The section, or None when ``light_oracle_<subject>.json`` is missing or unreadable.
+
+    ``train``: the train stage's metrics (``{model}_{split}_psnr``, ``{model}_novel_light_psnr_bar{id}``).
+    """
+    path = Path(bench_folder) / f"light_oracle_{subject}.json"
+    if not path.is_file():
+        return None
+    try:
+        result = json.loads(path.read_text(encoding="utf-8"))
+        per_split = {split: {key: float(result["psnr_db_per_split"][split][key]) for key, _ in ORACLE_COLUMNS}
+                     for split in SPLIT_LABELS if split in result["psnr_db_per_split"]}
+        held = sorted(int(b) for b in result["held_out_bars"])
+    except (ValueError, KeyError, TypeError):
+        return None
+    prefix = "ours_novel_light_psnr_bar"
+    trained_held = sorted(int(k[len(prefix):]) for k in train if k.startswith(prefix) and k[len(prefix):].isdigit())
+    comparable = trained_held == held
+    section = Section("How far interpolating the training lights goes (PSNR, dB)", "light-oracle")
+    section.paragraph(
+        f"`benchmarks/bench_light_oracle.py` on the train stage's own held-out-light images ({result.get('images_per_split')} "
+        f"a split, held-out bars {', '.join(map(str, held))}): each image predicted from perfect renders of the same frame "
+        "and camera under the training bars. The fitted blends see the answer: they bound methods that blend "
+        "training-light images (TRAvatar* is one), not every model. Scored against the captured images, as the "
+        "train stage scores the models.")
+    models = (("ours", "ours"), ("travatar", "TRAvatar*")) if comparable else ()
+    table = Table(["split"] + [label for _, label in ORACLE_COLUMNS] + [name for _, name in models],
+                  table_id="light-oracle-table")
+    for split, row in per_split.items():
+        cells = [SPLIT_LABELS[split]] + [f"{row[key]:.2f}" for key, _ in ORACLE_COLUMNS]
+        for model, _ in models:
+            value = train.get(f"{model}_{split}_psnr")
+            cells.append("-" if value is None else f"{float(value):.2f}")
+        table.add(cells)
+    section.table(table)
+    if not comparable:
+        section.paragraph(f"The train run held out bars {', '.join(map(str, trained_held)) or '(none recorded)'}, "
+                          "not the oracle's: it was measured on another capture, so the models are left out. Run "
+                          f"`ORACLE_SUBJECT={subject} python -m benchmarks.run_all light_oracle` again.", "note")
+    return section
