@@ -389,11 +389,10 @@ std::vector<torch::Tensor> candidates(torch::Tensor rays_o, torch::Tensor rays_d
   const int64_t b = rays_o.size(0), rb = rays_o.size(1), p = local_from_head.size(1), r = b * rb;
   auto opts = rays_o.options();
   // Each ray's hits go to a row of `cap` slots, left uninitialised. Rows of P slots, filled, made
-  // three [R, P] scratch tensors: 270 MB (float32) for the paper's 4096 boxes and 4096 rays, while a ray hits
-  // a few dozen boxes (at most 38 of 256 on the initial tiny head); on tiny the fills cost 0.2 ms
-  // a training step.
-  // A ray that hits more than `cap` boxes makes the scan run again with rows of P slots: a hit is
-  // never dropped.
+  // three [R, P] scratch tensors, up to 134 MB (float32) for each chunk of avatar.raymarch's 2^23
+  // (ray, box) pairs, while a ray hits a few dozen boxes (at most 38 of 256 on the
+  // initial tiny head); on tiny the fills cost 0.2 ms a training step. A ray that hits more than
+  // `cap` boxes makes the scan run again with rows of P slots: a hit is never dropped.
   const int64_t cap = std::min<int64_t>(p, 64);
   auto counts = torch::zeros({r}, opts.dtype(torch::kInt64));
   auto t_min = torch::zeros({r}, opts);
