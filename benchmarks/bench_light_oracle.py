@@ -105,6 +105,7 @@ def main() -> dict:
     from stages.train.data import load_train_data
     from stages.train.evaluate import eval_pairs
     from stages.train.splits import make_splits
+    from stages.report.light_oracle import capture_fingerprint
     from stages.train.stage import TrainParams, bar_directions, exposure_of
 
     subject = os.environ.get("ORACLE_SUBJECT", "bob")
@@ -190,7 +191,8 @@ def main() -> dict:
     for name, row in list(per_split.items()) + [(f"bar {b}", row) for b, row in per_bar.items()]:
         print(f"  {name:13s} {row['clean_render_vs_captured']:12.2f} "
               + " ".join(f"{row[f'{o}_vs_captured']:12.2f}" for o in ORACLES))
-    results = {"subject": subject, "width_px": width, "image_scale": scale, "images_per_split": images_per_split,
+    results = {"subject": subject, "capture_fingerprint": capture_fingerprint(inputs["capture"]),
+               "width_px": width, "image_scale": scale, "images_per_split": images_per_split,
                "held_out_bars": list(splits.held_out_bars), "training_bars": training_bars,
                "clean_settings": {"bar_samples": bar_samples}, "psnr_db_per_split": per_split,
                "psnr_db_per_held_out_bar": per_bar, "images": images, "renders": renders, "wall_s": wall}

@@ -9,6 +9,7 @@ run held out other bars, its figures are not comparable and the section says so.
 
 from __future__ import annotations
 
+import hashlib
 import json
 from pathlib import Path
 
@@ -23,10 +24,33 @@ ORACLE_COLUMNS = (("clean_render_vs_captured", "perfect render"),
 SPLIT_LABELS = {"novel_light": "novel light", "novel_both": "both"}
 
 
-def light_oracle_section(bench_folder: Path, subject: str, train: dict[str, float]) -> Section | None:
+def capture_fingerprint(capture: Path) -> str | None:
+    """A short hash naming one capture's content: its manifest and its first camera's first frame.
+
+    Two captures of the same performance with other render settings (light samples, noise) hold
+    other images, so their oracles differ; the fingerprint tells them apart without hashing
+    every frame. None when the folder has no manifest.
+    """
+    capture = Path(capture)
+    manifest = capture / "manifest.json"
+    if not manifest.is_file():
+        return None
+    digest = hashlib.sha256(manifest.read_bytes())
+    cameras = sorted(p for p in (capture / "frames").glob("*") if p.is_dir())
+    first = sorted(cameras[0].glob("*.exr"))[:1] if cameras else []
+    for path in first:
+        digest.update(path.read_bytes())
+    return digest.hexdigest()[:16]
+
+
+def light_oracle_section(bench_folder: Path, subject: str, train: dict[str, float],
+                         capture: str | None = None) -> Section | None:
     """The section, or None when ``light_oracle_<subject>.json`` is missing or unreadable.
 
     ``train``: the train stage's metrics (``{model}_{split}_psnr``, ``{model}_novel_light_psnr_bar{id}``).
+    ``capture``: ``capture_fingerprint`` of the capture the report's models were trained on; the
+    models are shown beside the oracle only when it was measured on that capture (or either
+    fingerprint is unknown) with the same held-out bars.
     """
     path = Path(bench_folder) / f"light_oracle_{subject}.json"
     if not path.is_file():
@@ -40,7 +64,9 @@ def light_oracle_section(bench_folder: Path, subject: str, train: dict[str, floa
         return None
     prefix = "ours_novel_light_psnr_bar"
     trained_held = sorted(int(k[len(prefix):]) for k in train if k.startswith(prefix) and k[len(prefix):].isdigit())
-    comparable = trained_held == held
+    oracle_capture = result.get("capture_fingerprint")
+    same_capture = capture is None or oracle_capture is None or oracle_capture == capture
+    comparable = trained_held == held and same_capture
     section = Section("How far interpolating the training lights goes (PSNR, dB)", "light-oracle")
     section.paragraph(
         f"`benchmarks/bench_light_oracle.py` on the train stage's own held-out-light images ({result.get('images_per_split')} "
@@ -59,7 +85,8 @@ def light_oracle_section(bench_folder: Path, subject: str, train: dict[str, floa
         table.add(cells)
     section.table(table)
     if not comparable:
-        section.paragraph(f"The train run held out bars {', '.join(map(str, trained_held)) or '(none recorded)'}, "
-                          "not the oracle's: it was measured on another capture, so the models are left out. Run "
+        why = (f"held out bars {', '.join(map(str, trained_held)) or '(none recorded)'}, not the oracle's"
+               if same_capture else "was trained on another capture than the oracle's")
+        section.paragraph(f"The train run {why}, so the models are left out. Run "
                           f"`ORACLE_SUBJECT={subject} python -m benchmarks.run_all light_oracle` again.", "note")
     return section

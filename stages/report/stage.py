@@ -25,7 +25,7 @@ from pydantic import Field
 
 from pipeline.stage import Stage, StageContext, StageParams
 from stages.report.capacity import BENCH_PNG as CAPACITY_PNG, capacity_section
-from stages.report.light_oracle import light_oracle_section
+from stages.report.light_oracle import capture_fingerprint, light_oracle_section
 from stages.report.seeds import seeds_section
 from stages.report.charts import stage_timings_chart, target_ratio_chart, tradeoff_chart
 from stages.report.html import Section, Table, render_document
@@ -222,7 +222,8 @@ def run(ctx: StageContext) -> None:
     spread = seeds_section(bench[0], ctx.subject) if bench else None
     if spread is not None:
         sections.append(spread)
-    oracle = light_oracle_section(bench[0], ctx.subject, merged["train"]) if bench else None
+    oracle = (light_oracle_section(bench[0], ctx.subject, merged["train"], capture_fingerprint(ctx.input("capture")))
+              if bench else None)
     if oracle is not None:
         sections.append(oracle)
 

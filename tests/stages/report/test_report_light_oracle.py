@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from stages.report.light_oracle import ORACLE_COLUMNS, light_oracle_section
+from stages.report.light_oracle import ORACLE_COLUMNS, capture_fingerprint, light_oracle_section
 
 
 def _oracle(held: list[int]) -> dict:
@@ -30,6 +30,22 @@ def test_an_oracle_of_other_held_out_bars_leaves_the_models_out_and_says_why(tmp
     train = {"ours_novel_light_psnr": 27.25, "ours_novel_light_psnr_bar9": 27.0, "ours_novel_light_psnr_bar13": 27.5}
     (tmp_path / "light_oracle_alice.json").write_text(json.dumps(_oracle([9, 17])))
     html = "".join(light_oracle_section(tmp_path, "alice", train).parts)
-    assert "27.25" not in html and "another capture" in html and "9, 13" in html
+    assert "27.25" not in html and "not the oracle" in html and "9, 13" in html
     (tmp_path / "light_oracle_alice.json").write_text("{not json")
     assert light_oracle_section(tmp_path, "alice", train) is None
+
+
+def test_an_oracle_of_another_capture_leaves_the_models_out(tmp_path: Path) -> None:
+    capture = tmp_path / "capture"
+    (capture / "frames" / "cam00").mkdir(parents=True)
+    (capture / "manifest.json").write_text('{"frames": []}')
+    (capture / "frames" / "cam00" / "000001.exr").write_bytes(b"first frame")
+    ours = capture_fingerprint(capture)
+    (capture / "frames" / "cam00" / "000001.exr").write_bytes(b"the same frame, other noise")
+    other = capture_fingerprint(capture)
+    assert ours and other and ours != other and capture_fingerprint(tmp_path / "none") is None
+    train = {"ours_novel_light_psnr": 27.25, "ours_novel_light_psnr_bar9": 27.0, "ours_novel_light_psnr_bar13": 27.5}
+    (tmp_path / "light_oracle_alice.json").write_text(json.dumps({**_oracle([9, 13]), "capture_fingerprint": ours}))
+    assert "27.25" in "".join(light_oracle_section(tmp_path, "alice", train, ours).parts)
+    html = "".join(light_oracle_section(tmp_path, "alice", train, other).parts)
+    assert "27.25" not in html and "another capture" in html
