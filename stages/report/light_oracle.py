@@ -25,21 +25,27 @@ SPLIT_LABELS = {"novel_light": "novel light", "novel_both": "both"}
 
 
 def capture_fingerprint(capture: Path) -> str | None:
-    """A short hash naming one capture's content: its manifest and its first camera's first frame.
+    """A short hash naming one capture's content: its manifest and its first camera's first OLAT frame.
 
-    Two captures of the same performance with other render settings (light samples, noise) hold
-    other images, so their oracles differ; the fingerprint tells them apart without hashing
-    every frame. None when the folder has no manifest.
+    Two captures of the same performance with other render settings (light samples per bar,
+    noise) hold other OLAT images, so their oracles differ; the fingerprint tells them apart
+    without hashing every frame (a full-on frame would not: it is rendered the same way). None
+    when the folder has no readable manifest.
     """
     capture = Path(capture)
-    manifest = capture / "manifest.json"
-    if not manifest.is_file():
+    try:
+        text = (capture / "manifest.json").read_bytes()
+        frames = json.loads(text).get("frames", [])
+    except (OSError, ValueError, AttributeError):
         return None
-    digest = hashlib.sha256(manifest.read_bytes())
+    digest = hashlib.sha256(text)
+    olat = [f["index"] for f in frames if isinstance(f, dict) and isinstance(f.get("light"), int)
+            and f.get("status", "ok") == "ok" and "index" in f]
     cameras = sorted(p for p in (capture / "frames").glob("*") if p.is_dir())
-    first = sorted(cameras[0].glob("*.exr"))[:1] if cameras else []
-    for path in first:
-        digest.update(path.read_bytes())
+    if olat and cameras:
+        frame = cameras[0] / f"{int(olat[0]):06d}.exr"
+        if frame.is_file():
+            digest.update(frame.read_bytes())
     return digest.hexdigest()[:16]
 
 

@@ -38,10 +38,14 @@ def test_an_oracle_of_other_held_out_bars_leaves_the_models_out_and_says_why(tmp
 def test_an_oracle_of_another_capture_leaves_the_models_out(tmp_path: Path) -> None:
     capture = tmp_path / "capture"
     (capture / "frames" / "cam00").mkdir(parents=True)
-    (capture / "manifest.json").write_text('{"frames": []}')
-    (capture / "frames" / "cam00" / "000001.exr").write_bytes(b"first frame")
+    (capture / "manifest.json").write_text(json.dumps({"frames": [{"index": 0, "light": "F", "status": "ok"},
+                                                                  {"index": 1, "light": 7, "status": "ok"}]}))
+    (capture / "frames" / "cam00" / "000000.exr").write_bytes(b"full-on frame")
+    (capture / "frames" / "cam00" / "000001.exr").write_bytes(b"first OLAT frame")
     ours = capture_fingerprint(capture)
-    (capture / "frames" / "cam00" / "000001.exr").write_bytes(b"the same frame, other noise")
+    (capture / "frames" / "cam00" / "000000.exr").write_bytes(b"full-on frame, other noise")
+    assert capture_fingerprint(capture) == ours  # full-on frames render the same whatever the OLAT settings
+    (capture / "frames" / "cam00" / "000001.exr").write_bytes(b"the same OLAT frame, other light samples")
     other = capture_fingerprint(capture)
     assert ours and other and ours != other and capture_fingerprint(tmp_path / "none") is None
     train = {"ours_novel_light_psnr": 27.25, "ours_novel_light_psnr_bar9": 27.0, "ours_novel_light_psnr_bar13": 27.5}
