@@ -3,8 +3,9 @@
 For the report's subject: on the images the train stage scores its held-out lights on, what a
 perfect render scores against the captured targets, what blending the training lights' perfect
 images scores (TRAvatar*'s rule, and blends fitted to the answer), and what ours and TRAvatar*
-score in the train stage's metrics. The oracle is computed for one capture; when the train
-run held out other bars, its figures are not comparable and the section says so.
+score in the train stage's metrics. The oracle is measured on one capture: when the report's
+models were trained on another (``capture_fingerprint``) or held out other bars, the figures
+are not comparable, and the section leaves the models out and says why.
 """
 
 from __future__ import annotations
