@@ -55,9 +55,14 @@ SPLITS_WITH_HELD_OUT_LIGHT: tuple[str, ...] = ("novel_light", "novel_both")
 
 
 def exposure_fit(pred: np.ndarray, target: np.ndarray) -> np.ndarray:
-    """``pred`` scaled by the least-squares factor onto ``target`` (``avatar.metrics.exposure_scale``)."""
-    den = float((pred * pred).sum())
-    return pred * (float((pred * target).sum()) / den if den > 0 else 0.0)
+    """``pred`` scaled by the train stage's least-squares exposure factor onto ``target`` (one image)."""
+    import torch
+
+    from avatar.metrics import exposure_scale
+
+    scale = exposure_scale(torch.from_numpy(np.asarray(pred, np.float64))[None],
+                           torch.from_numpy(np.asarray(target, np.float64))[None])
+    return pred * float(scale[0])
 
 
 def oracle_predictions(target: np.ndarray, basis_images: np.ndarray, barycentric: np.ndarray
