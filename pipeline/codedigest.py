@@ -1,10 +1,30 @@
-"""The code digest of a stage: its own package plus the project modules it declares.
+"""The code digest of a stage: its own package plus every project module it imports, transitively.
 
-Each Python file is normalised through ``ast`` (docstrings dropped; comments and layout never
-reach the tree), so comment-only and whitespace-only edits leave the digest unchanged while any
-change to what the code does changes it. Files are found without importing anything (so a
-status check need not import torch); digests are cached per process and, through the
-declaration cache, across processes by file stat.
+What a stage's results depend on is found from the source, without importing anything (so
+``pipeline status`` need not import torch):
+
+- **Imports.** Each project file is parsed with ``ast``; every ``import`` and ``from ... import``
+  counts, wherever it stands (inside functions too), and so does ``importlib.import_module``
+  with a literal name. A dotted import also runs each parent package's ``__init__.py``, so
+  those count as well. Following these edges from the stage's own package gives its closure.
+- **Files that are not imports.** A module that loads a non-Python file (a C++ source it
+  compiles, a weights file, a face model) declares it once, beside the code that loads it, in a
+  module-level ``CODE_FILES`` tuple of string literals, paths relative to the module's folder
+  (a folder counts with every file below it)::
+
+      CODE_FILES = ("raymarch_fused.cpp",)
+      SOURCE = Path(__file__).with_name(CODE_FILES[0])
+
+  Every module that imports it then depends on those files too.
+- ``Stage.code`` remains for what neither can show (a module run by name in a subprocess
+  outside the stage's package, say).
+
+Each Python file counts by its syntax tree without docstrings (comments and layout never reach
+the tree), so comment-only and whitespace-only edits change nothing, while any change to what the
+code does changes the digest; other files count by their bytes. A stage's code version keeps the
+digest of every file it covers (``CodeVersion.files``), so ``pipeline status`` can name the file
+that changed. Per-file scans and digests are cached per process and, through the declaration
+cache, across processes by file stat.
 """
 
 from __future__ import annotations
@@ -13,14 +33,19 @@ import ast
 import importlib.util
 import os
 import sys
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Protocol
+from typing import Iterable, Protocol, Sequence
 
 from pipeline.errors import ConfigError
-from pipeline.hashing import hash_bytes
+from pipeline.hashing import hash_bytes, hash_file
+
+# The module-level name under which a module declares the non-Python files it loads.
+CODE_FILES_NAME = "CODE_FILES"
 
 _FILE_CACHE: dict[tuple[str, int, int], str] = {}
-_STAGE_CACHE: dict[tuple[str, str], str] = {}
+_SCAN_CACHE: dict[tuple[str, int, int], "FileScan"] = {}
+_STAGE_CACHE: dict[tuple[str, str, str], "CodeVersion"] = {}
 
 
 class _Declared(Protocol):
@@ -32,6 +57,11 @@ class _DigestStore(Protocol):
     def file_digest(self, path: str) -> str | None: ...
 
     def put_file_digest(self, path: str, size: int, mtime_ns: int, digest: str) -> None: ...
+
+    def file_scan(self, path: str) -> tuple[list[str], list[str]] | None: ...
+
+    def put_file_scan(self, path: str, size: int, mtime_ns: int, imports: list[str],
+                      code_files: list[str]) -> None: ...
 
 
 def _strip_docstrings(tree: ast.AST) -> ast.AST:
@@ -64,6 +94,21 @@ def normalised_source_digest(path: Path | str, store: _DigestStore | None = None
     if store is not None:
         store.put_file_digest(str(path), st.st_size, st.st_mtime_ns, digest)
     return digest
+
+
+def data_file_digest(path: Path | str, store: _DigestStore | None = None) -> str:
+    """Digest of a non-Python file's bytes (cached by stat like the source digests)."""
+    st = os.stat(path)
+    key = (str(path), st.st_size, st.st_mtime_ns)
+    cached = _FILE_CACHE.get(key)
+    if cached is None and store is not None:
+        cached = store.file_digest(str(path))
+    if cached is None:
+        cached = hash_file(path)
+        if store is not None:
+            store.put_file_digest(str(path), st.st_size, st.st_mtime_ns, cached)
+    _FILE_CACHE[key] = cached
+    return cached
 
 
 def _python_files(folder: Path) -> list[Path]:
@@ -111,38 +156,327 @@ def module_files(dotted: str, root: Path | None = None) -> list[Path]:
     return _python_files(path) if is_package else [path]
 
 
-def stage_source_files(stage: _Declared, module_name: str, root: Path | None = None) -> list[Path]:
-    """The stage's own package (``stages/<pkg>/**/*.py``; just the module file for a top-level
-    module) plus every module of ``Stage.code``; sorted, no duplicates."""
+@dataclass(frozen=True)
+class FileScan:
+    """What a Python file's syntax tree says it depends on.
+
+    ``imports``: absolute dotted names, one per imported name (``from a import b`` gives
+    ``a.b``: a submodule if there is one, else a name in ``a``), wherever the import stands.
+    ``code_files``: its ``CODE_FILES`` declaration, paths relative to the file's folder.
+    """
+
+    imports: tuple[str, ...]
+    code_files: tuple[str, ...]
+
+
+def _module_name(path: Path, root: Path) -> tuple[str, bool]:
+    """(dotted name, is_package) of a project file."""
+    rel = path.relative_to(root).with_suffix("")
+    parts = list(rel.parts)
+    if parts[-1] == "__init__":
+        return ".".join(parts[:-1]), True
+    return ".".join(parts), False
+
+
+def _declared_files(node: ast.stmt, path: Path) -> tuple[str, ...] | None:
+    """The literal paths of a module-level ``CODE_FILES = (...)``, None for any other statement."""
+    if isinstance(node, ast.Assign):
+        targets, value = node.targets, node.value
+    elif isinstance(node, ast.AnnAssign) and node.value is not None:
+        targets, value = [node.target], node.value
+    else:
+        return None
+    if not any(isinstance(t, ast.Name) and t.id == CODE_FILES_NAME for t in targets):
+        return None
+    if not isinstance(value, (ast.Tuple, ast.List)) or not all(
+            isinstance(e, ast.Constant) and isinstance(e.value, str) for e in value.elts):
+        raise ConfigError(f"{path}:{node.lineno}: {CODE_FILES_NAME} must be a tuple of string literals "
+                          f"(paths relative to the module's folder), so that it can be read without "
+                          f"importing the module")
+    return tuple(e.value for e in value.elts)
+
+
+def scan_source(source: bytes, path: Path, module: str, is_package: bool) -> FileScan:
+    """The imports and declared files of one Python file (``module``: its dotted name)."""
+    try:
+        tree = ast.parse(source, filename=str(path))
+    except (SyntaxError, ValueError):
+        return FileScan((), ())  # its digest still changes with every edit; it cannot import anything
+    package = module if is_package else module.rpartition(".")[0]
+    imports: list[str] = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            imports.extend(alias.name for alias in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base_parts = package.split(".") if package else []
+                if node.level > 1:
+                    base_parts = base_parts[:len(base_parts) - (node.level - 1)]
+                base = ".".join(base_parts + ([node.module] if node.module else []))
+            else:
+                base = node.module or ""
+            if not base:
+                continue
+            # ``from a import b`` names ``a.b``: the submodule if there is one, else ``a`` itself
+            # (resolution takes the deepest module that exists); ``a``'s ``__init__`` runs either way.
+            for alias in node.names:
+                imports.append(base if alias.name == "*" else f"{base}.{alias.name}")
+        elif isinstance(node, ast.Call) and node.args and isinstance(node.args[0], ast.Constant) \
+                and isinstance(node.args[0].value, str):
+            func = node.func
+            name = func.attr if isinstance(func, ast.Attribute) else getattr(func, "id", None)
+            if name == "import_module":
+                imports.append(node.args[0].value)
+    declared: tuple[str, ...] = ()
+    for node in tree.body:
+        found = _declared_files(node, path)
+        if found is not None:
+            declared = found
+    return FileScan(tuple(dict.fromkeys(imports)), declared)
+
+
+@dataclass(frozen=True)
+class CodeVersion:
+    """The code a stage (or a cache) depends on: one digest, and each file's (path relative to
+    the project root -> digest) so a change can be named."""
+
+    digest: str
+    files: dict[str, str]
+
+
+def changed_files(old: dict[str, str], new: dict[str, str]) -> list[str]:
+    """The files whose digest differs between two ``CodeVersion.files`` (added and removed ones too)."""
+    lines = []
+    for rel in sorted(set(old) | set(new)):
+        if rel not in old:
+            lines.append(f"{rel} (new)")
+        elif rel not in new:
+            lines.append(f"{rel} (no longer used)")
+        elif old[rel] != new[rel]:
+            lines.append(rel)
+    return lines
+
+
+class SourceGraph:
+    """The import graph of the project under ``root``, read from source files only.
+
+    A module is a project module when its file lives under ``root`` (``a/b.py`` or
+    ``a/b/__init__.py``; folders without ``__init__.py`` are namespace packages); anything else
+    (the standard library, torch, ...) is outside the graph.
+    """
+
+    def __init__(self, root: Path, store: _DigestStore | None = None) -> None:
+        self.root = Path(root).resolve()
+        self.store = store
+        self._resolved: dict[str, tuple[Path | None, tuple[Path, ...]]] = {}
+
+    # -- modules and files ----------------------------------------------------------------
+
+    def _resolve(self, dotted: str) -> tuple[Path | None, tuple[Path, ...]]:
+        """(the deepest project file the name reaches, the parent ``__init__.py`` files run on the way)."""
+        hit = self._resolved.get(dotted)
+        if hit is not None:
+            return hit
+        parts = dotted.split(".")
+        target: Path | None = None
+        inits: list[Path] = []
+        folder = self.root
+        for i, part in enumerate(parts):
+            if not part.isidentifier() or (i == 0 and part.startswith(".")):
+                break
+            package = folder / part
+            if (package / "__init__.py").is_file():
+                target = package / "__init__.py"
+                inits.append(target)
+                folder = package
+            elif package.with_suffix(".py").is_file():
+                target = package.with_suffix(".py")
+                break
+            elif package.is_dir() and i < len(parts) - 1 and not part.startswith("."):
+                folder = package  # a namespace package: nothing runs, look further down
+            else:
+                break
+        if target is not None and target.name == "__init__.py":
+            inits = inits[:-1]
+        result = (target, tuple(inits))
+        self._resolved[dotted] = result
+        return result
+
+    def module_file(self, dotted: str) -> Path | None:
+        """The project file of a module (``a/b.py`` or ``a/b/__init__.py``), None outside the project."""
+        target, _ = self._resolve(dotted)
+        if target is None:
+            return None
+        name, _ = _module_name(target, self.root)
+        return target if name == dotted else None
+
+    def relpath(self, path: Path) -> str:
+        """A file's path relative to the project root, ``/``-separated."""
+        return path.relative_to(self.root).as_posix()
+
+    def scan(self, path: Path) -> FileScan:
+        """The imports and declared files of one project file (cached by stat)."""
+        st = os.stat(path)
+        key = (str(path), st.st_size, st.st_mtime_ns)
+        cached = _SCAN_CACHE.get(key)
+        if cached is None and self.store is not None:
+            stored = self.store.file_scan(str(path))
+            if stored is not None:
+                cached = FileScan(tuple(stored[0]), tuple(stored[1]))
+        if cached is None:
+            module, is_package = _module_name(path, self.root)
+            cached = scan_source(path.read_bytes(), path, module, is_package)
+            if self.store is not None:
+                self.store.put_file_scan(str(path), st.st_size, st.st_mtime_ns, list(cached.imports),
+                                         list(cached.code_files))
+        _SCAN_CACHE[key] = cached
+        return cached
+
+    def imported_files(self, path: Path) -> list[Path]:
+        """The project files one file's imports name directly (the deepest module of each; no
+        parent packages), for the import graph."""
+        found: dict[Path, None] = {}
+        for dotted in self.scan(path).imports:
+            target, _ = self._resolve(dotted)
+            if target is not None and target != path:
+                found[target] = None
+        return list(found)
+
+    def declared_files(self, path: Path) -> list[Path]:
+        """The non-Python files a module declares in ``CODE_FILES`` (folders expanded), checked to exist."""
+        files: list[Path] = []
+        for rel in self.scan(path).code_files:
+            target = (path.parent / rel).resolve()
+            if target != self.root and self.root not in target.parents:
+                raise ConfigError(f"{path}: {CODE_FILES_NAME} entry '{rel}' is outside the project "
+                                  f"{self.root}; declare only files that ship with the project")
+            if target.is_dir():
+                files.extend(sorted(p for p in target.rglob("*") if p.is_file() and "__pycache__" not in p.parts))
+            elif target.is_file():
+                files.append(target)
+            else:
+                raise ConfigError(f"{path}: {CODE_FILES_NAME} entry '{rel}' does not exist ({target}); "
+                                  f"fix the declaration or restore the file")
+        return files
+
+    def closure(self, roots: Iterable[Path]) -> list[Path]:
+        """Every project file reachable from ``roots`` through imports (with the parent packages'
+        ``__init__.py``) and the files those modules declare; sorted."""
+        todo = [Path(p).resolve() for p in roots]
+        seen: set[Path] = set()
+        data: set[Path] = set()
+        while todo:
+            path = todo.pop()
+            if path in seen:
+                continue
+            seen.add(path)
+            module, _ = _module_name(path, self.root)
+            _, own_inits = self._resolve(module)
+            todo.extend(own_inits)
+            for dotted in self.scan(path).imports:
+                target, inits = self._resolve(dotted)
+                todo.extend(inits)
+                if target is not None:
+                    todo.append(target)
+            data.update(self.declared_files(path))
+        return sorted(seen | data)
+
+    def version(self, files: Iterable[Path]) -> CodeVersion:
+        """The ``CodeVersion`` of a set of files (Python by normalised syntax tree, others by bytes)."""
+        digests = {}
+        for path in sorted(files):
+            rel = self.relpath(path)
+            digests[rel] = (normalised_source_digest(path, self.store) if path.suffix == ".py"
+                            else data_file_digest(path, self.store))
+        lines = "".join(f"{rel}\t{digest}\n" for rel, digest in digests.items())
+        return CodeVersion(hash_bytes(lines.encode()), digests)
+
+
+def _own_files(module_name: str, root: Path, name: str) -> list[Path]:
     found = locate_module(module_name, root)
     if found is None:
-        raise ConfigError(f"stage '{stage.name}': module {module_name} cannot be found")
+        raise ConfigError(f"stage '{name}': module {module_name} cannot be found")
     path, is_package = found
     if is_package:
-        own = _python_files(path)
-    elif module_name.count(".") >= 2:
-        own = _python_files(path.parent)  # stages.<pkg>.stage: the whole stages/<pkg> package
-    else:
-        own = [path]
-    files = {p.resolve() for p in own}
+        return _python_files(path)
+    if module_name.count(".") >= 2:
+        return _python_files(path.parent)  # stages.<pkg>.stage: the whole stages/<pkg> package
+    return [path]
+
+
+def stage_source_files(stage: _Declared, module_name: str, root: Path,
+                       store: _DigestStore | None = None) -> list[Path]:
+    """The files a stage's code digest covers: its own package (``stages/<pkg>/**/*.py``; just the
+    module file for a top-level module), every ``Stage.code`` module, and everything they import
+    or declare, transitively; sorted, no duplicates."""
+    graph = SourceGraph(root, store)
+    roots = [p.resolve() for p in _own_files(module_name, root, stage.name)]
     for dotted in stage.code:
-        files.update(p.resolve() for p in module_files(dotted, root))
-    return sorted(files)
+        roots.extend(p.resolve() for p in module_files(dotted, root))
+    return graph.closure(roots)
 
 
-def stage_code_digest(stage: _Declared, module_name: str, root: Path, store: _DigestStore | None = None) -> str:
-    """Digest over (path relative to the project root, normalised source digest) of every file."""
-    cache_key = (stage.name, module_name)
+def stage_code_version(stage: _Declared, module_name: str, root: Path,
+                       store: _DigestStore | None = None) -> CodeVersion:
+    """The stage's ``CodeVersion`` over ``stage_source_files`` (cached per process)."""
+    cache_key = (str(root), stage.name, module_name)
     cached = _STAGE_CACHE.get(cache_key)
     if cached is not None:
         return cached
-    lines = []
-    for path in stage_source_files(stage, module_name, root):
-        try:
-            rel = path.relative_to(root).as_posix()
-        except ValueError:
-            rel = path.as_posix()
-        lines.append(f"{rel}\t{normalised_source_digest(path, store)}\n")
-    digest = hash_bytes("".join(lines).encode())
-    _STAGE_CACHE[cache_key] = digest
-    return digest
+    graph = SourceGraph(root, store)
+    version = graph.version(stage_source_files(stage, module_name, root, store))
+    _STAGE_CACHE[cache_key] = version
+    return version
+
+
+def stage_code_digest(stage: _Declared, module_name: str, root: Path, store: _DigestStore | None = None) -> str:
+    """The stage's code digest (``stage_code_version(...).digest``)."""
+    return stage_code_version(stage, module_name, root, store).digest
+
+
+def forget_cached_versions() -> None:
+    """Drop this process's per-stage code versions (files edited while the process runs)."""
+    _STAGE_CACHE.clear()
+
+
+def _root_of(dotted: str) -> tuple[Path, Path] | None:
+    """(project root, module file) of an importable module, from where its file lies."""
+    found = locate_module(dotted)
+    if found is None:
+        return None
+    path, is_package = found
+    file = path / "__init__.py" if is_package else path
+    if not file.is_file():
+        return None
+    depth = dotted.count(".") + (1 if is_package else 0)
+    root = file.resolve().parent
+    for _ in range(depth):
+        root = root.parent
+    return root, file.resolve()
+
+
+def modules_code_version(modules: Sequence[str]) -> CodeVersion | None:
+    """The ``CodeVersion`` of the import closure of some modules (for caches keyed on code: the
+    per-item caches, checkpoints, trained models); None when none of them is a project file."""
+    roots: list[Path] = []
+    project_root: Path | None = None
+    for dotted in modules:
+        if dotted == "__main__":
+            continue
+        found = _root_of(dotted)
+        if found is None:
+            continue
+        root, file = found
+        if project_root is None:
+            project_root = root
+        elif root != project_root:
+            raise ConfigError(f"modules {list(modules)} come from different project folders "
+                              f"({project_root} and {root}); a code version covers one project")
+        if file.name == "__init__.py":
+            roots.extend(p.resolve() for p in _python_files(file.parent))
+        else:
+            roots.append(file)
+    if project_root is None:
+        return None
+    graph = SourceGraph(project_root)
+    return graph.version(graph.closure(roots))

@@ -16,14 +16,10 @@ import sys
 from typing import Any, Callable, Iterator, Sequence, TypeVar
 
 from pipeline.errors import ConfigError, PipelineError
-from pipeline.executors import BaseExecutor, ProgressFactory, chunk_bounds, ordered
+from pipeline.executor_base import BaseExecutor, ProgressFactory, apply_chunk, chunk_bounds, ordered
 
 T = TypeVar("T")
 R = TypeVar("R")
-
-
-def _apply_chunk(fn: Callable[[Any], Any], chunk: Sequence[Any]) -> list[Any]:
-    return [fn(item) for item in chunk]
 
 
 class RayExecutor(BaseExecutor):
@@ -59,7 +55,7 @@ class RayExecutor(BaseExecutor):
                 ray.init(num_cpus=self.workers, include_dashboard=False, log_to_driver=False,
                          configure_logging=False, runtime_env={"env_vars": {"PYTHONPATH": driver_path}})
             self._started_here = True
-        self._remote_apply = ray.remote(_apply_chunk)
+        self._remote_apply = ray.remote(apply_chunk)
 
     def cluster_cpus(self) -> int:
         """CPUs the cluster offers (for chunking)."""

@@ -15,6 +15,7 @@ from pathlib import Path
 
 from pipeline.errors import InputError
 from pipeline.stage import StageContext
+from stages.capture.placement import label_and_place
 from scene.colour import luminance
 from scene.image_io import read_exr
 
@@ -46,8 +47,6 @@ def _read_json(root: Path, name: str) -> object:
 
 def import_capture(ctx: StageContext, source: Path) -> dict:
     """Label and link a real capture into ``ctx.out``; returns ``{"manifest", "metrics"}``."""
-    from stages.capture.stage import _label_and_place
-
     root = Path(source).resolve()
     info = _read_json(root, "capture.json")
     log_raw = _read_json(root, "controller_log.json")
@@ -103,7 +102,7 @@ def import_capture(ctx: StageContext, source: Path) -> dict:
     take_of = [t["name"] for t in takes_cfg for _ in range(int(t["frames"]))]
     takes = tuple(t["name"] for t in takes_cfg)
     (ctx.out / "controller_log.json").write_text(json.dumps({"fps": fps, "entries": entries}, indent=1))
-    manifest, metrics = _label_and_place(
+    manifest, metrics = label_and_place(
         ctx, fps, cam_names, int(info.get("bars", 32)), takes, take_of, entries, brightness, n_triggers,
         received=lambda cam, r: files[cam][r], place=link_or_copy, frame_times=frame_times)
     manifest.update(subject=str(info.get("subject", ctx.subject)), width=width, height=height)

@@ -27,11 +27,8 @@ The calibration takes are cached per camera and take likewise (``calibration_ite
 from __future__ import annotations
 
 import json
-import os
-import shutil
 import time
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 from pydantic import Field, field_validator
@@ -143,6 +140,7 @@ def _virtual_capture(ctx: StageContext, params: CaptureParams) -> dict:
     from hardware.led import Faults, run_emulated_session
     from hardware.studio import RenderSettings, make_performance, make_subject, scan_session
     from pipeline.itemcache import stage_item_cache
+    from stages.capture.placement import label_and_place
     from stages.capture.virtual import RENDER_CODE, RenderTask, place_pulse, pulse_key, render_task
 
     rig = params.rig
@@ -210,7 +208,7 @@ def _virtual_capture(ctx: StageContext, params: CaptureParams) -> dict:
         rng = np.random.default_rng([params.noise_seed, 7])
         frame_times = [[i / fps + params.camera_timestamp_jitter_s * rng.standard_normal() for i in stream]
                        for stream in streams]
-    manifest, label_metrics = _label_and_place(ctx, fps, cam_names, len(rig.bars), params.takes,
+    manifest, label_metrics = label_and_place(ctx, fps, cam_names, len(rig.bars), params.takes,
                                                [f.take for f in performance], log_json, brightness, n_frames,
                                                frame_times=frame_times)
     manifest.update(width=cameras[0].width, height=cameras[0].height)
@@ -263,61 +261,6 @@ def _camera_streams(params: CaptureParams, cam_names: list[str], n_frames: int) 
                 stream.append(i)
         streams.append(stream)
     return streams
-
-
-def _label_and_place(ctx: StageContext, fps: float, cam_names: list[str], n_bars: int, takes: tuple[str, ...],
-                     take_of_trigger: list[str], log_json: list[dict], brightness: list[list[float]],
-                     n_triggers: int, received: Callable[[str, int], Path] | None = None,
-                     place: Callable[[Path, Path], None] = os.replace,
-                     frame_times: list[list[float]] | None = None) -> tuple[dict, dict]:
-    """Label received frames from the controller log, move them to ``frames/<cam>/<index>.exr``.
-
-    Images arrive in ``received(cam, k)`` (default ``_received/<cam>/<k>.exr``, arrival order)
-    and are moved (``place``: a rename; the importer hard-links). Each log entry carries its
-    trigger's time stamp, which gives the frame index; a trigger the controller did not act
-    on has no log entry and is listed as dropped (``reason: "no light"``).
-    """
-    from stages.capture.labelling import label_frames
-
-    log_lights = [e["light"] for e in log_json]
-    trigger_of_entry = [int(round(e["time_us"] * 1e-6 * fps)) for e in log_json]
-    try:
-        result = label_frames(log_lights, brightness, camera_names=cam_names, frame_times_s=frame_times,
-                              log_times_s=[e["time_us"] * 1e-6 for e in log_json] if frame_times else None)
-    except ValueError as err:
-        raise InputError(f"capture: frames cannot be matched to the controller log ({err})") from err
-    for line in result.warnings:
-        ctx.log.warning(line)
-    staging = ctx.out / "_received"
-    received = received or (lambda cam, r: staging / cam / f"{r:06d}.exr")
-    for c, cam in enumerate(cam_names):
-        (ctx.out / "frames" / cam).mkdir(parents=True, exist_ok=True)
-        labels = result.cameras[c]
-        for r, (k, status) in enumerate(zip(labels.pulse, labels.status)):
-            if status == "ok":
-                place(received(cam, r), ctx.out / "frames" / cam / f"{trigger_of_entry[k]:06d}.exr")
-    shutil.rmtree(staging, ignore_errors=True)
-
-    by_trigger = {t: k for k, t in enumerate(trigger_of_entry)}
-    frames = []
-    n_total = max(n_triggers, max(trigger_of_entry, default=-1) + 1)
-    for index in range(n_total):
-        take = take_of_trigger[index] if index < len(take_of_trigger) else takes[-1]
-        entry = {"index": index, "take": take, "time_s": round(index / fps, 9)}
-        k = by_trigger.get(index)
-        if k is None:
-            entry.update(light=None, status="dropped", reason="no light")
-        else:
-            missing = [cam_names[c] for c in range(len(cam_names)) if result.pulse_frame[c, k] < 0]
-            entry.update(light=log_lights[k], status="ok" if not missing else "dropped")
-            if missing:
-                entry.update(reason="no image", missing_cameras=missing)
-        frames.append(entry)
-    manifest = {"subject": ctx.subject, "fps": fps, "width": None, "height": None, "cameras": cam_names,
-                "bars": n_bars, "takes": list(takes), "frames": frames}
-    metrics = {"repeated_frames": result.count("repeated"), "unexpected_frames": result.count("unexpected"),
-               "shifted_frames": result.shifted_frames(), "labelling_warnings": len(result.warnings)}
-    return manifest, metrics
 
 
 def _calibration_takes(ctx: StageContext, params: CaptureParams, cameras, truth: Path) -> dict:

@@ -16,11 +16,23 @@ import subprocess
 import sys
 import uuid
 from pathlib import Path
+from typing import Protocol
 
 from pipeline.errors import ConfigError, PipelineError
 from pipeline.stage import StageContext
 
 PROJECT_ROOT = Path(__file__).resolve().parents[2]
+
+
+class DdpSettings(Protocol):
+    """The train params the launcher reads (``stages.train.stage.TrainParams`` has them; the
+    launcher does not import it, so the stage and its launcher do not import each other)."""
+
+    device: str
+    processes: int
+    threads: int
+
+    def model_dump(self, *, mode: str) -> dict: ...
 
 
 def torchrun_command(processes: int, job: Path) -> list[str]:
@@ -56,9 +68,7 @@ def _stop(proc: subprocess.Popen) -> None:
 
 def launch_ddp(ctx: StageContext) -> None:
     """Run the stage on ``ctx.params.processes`` ranks and fill ``ctx.metrics`` from rank 0."""
-    from stages.train.stage import TrainParams
-
-    params: TrainParams = ctx.params  # type: ignore[assignment]
+    params: DdpSettings = ctx.params  # type: ignore[assignment]
     _check_backend(params.device, params.processes)
     jobs = ctx.cache_dir / "ddp_jobs"
     jobs.mkdir(parents=True, exist_ok=True)
