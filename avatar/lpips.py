@@ -18,7 +18,9 @@ import torch.nn.functional as F
 from torch import nn
 
 _MIN_SIDE_PX = 64
-DEFAULT_WEIGHTS = Path(__file__).resolve().parents[1] / "assets" / "lpips" / "alexnet.safetensors"
+# The shipped weights (declared so the code digest of every module that scores with LPIPS covers them).
+CODE_FILES = ("../assets/lpips/alexnet.safetensors",)
+DEFAULT_WEIGHTS = (Path(__file__).parent / CODE_FILES[0]).resolve()
 
 # (name in the flax tree, out channels, kernel, stride, padding) of AlexNet's five convs.
 _ALEX = (("Conv_0", 64, 11, 4, 2), ("Conv_1", 192, 5, 1, 2), ("Conv_2", 384, 3, 1, 1),

@@ -23,7 +23,9 @@ from pathlib import Path
 
 import torch
 
-SOURCE = Path(__file__).with_name("raymarch_fused.cpp")
+# The C++ source this module compiles (declared here so every importer's code digest covers it).
+CODE_FILES = ("raymarch_fused.cpp",)
+SOURCE = Path(__file__).with_name(CODE_FILES[0])
 EXTENSION_NAME = "relightable_raymarch_fused"
 
 log = logging.getLogger(__name__)

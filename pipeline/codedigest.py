@@ -457,9 +457,13 @@ def _root_of(dotted: str) -> tuple[Path, Path] | None:
 
 def modules_code_version(modules: Sequence[str]) -> CodeVersion | None:
     """The ``CodeVersion`` of the import closure of some modules (for caches keyed on code: the
-    per-item caches, checkpoints, trained models); None when none of them is a project file."""
-    roots: list[Path] = []
-    project_root: Path | None = None
+    per-item caches, checkpoints, trained models); None when none of them has a source file.
+
+    Each module's project root is where its file lies (``a/b/c.py`` of ``a.b.c`` -> the folder
+    holding ``a``); modules from several roots (a test's helper module beside the project's)
+    are followed each in its own root.
+    """
+    roots_by_project: dict[Path, list[Path]] = {}
     for dotted in modules:
         if dotted == "__main__":
             continue
@@ -467,16 +471,18 @@ def modules_code_version(modules: Sequence[str]) -> CodeVersion | None:
         if found is None:
             continue
         root, file = found
-        if project_root is None:
-            project_root = root
-        elif root != project_root:
-            raise ConfigError(f"modules {list(modules)} come from different project folders "
-                              f"({project_root} and {root}); a code version covers one project")
+        files = roots_by_project.setdefault(root, [])
         if file.name == "__init__.py":
-            roots.extend(p.resolve() for p in _python_files(file.parent))
+            files.extend(p.resolve() for p in _python_files(file.parent))
         else:
-            roots.append(file)
-    if project_root is None:
+            files.append(file)
+    if not roots_by_project:
         return None
-    graph = SourceGraph(project_root)
-    return graph.version(graph.closure(roots))
+    versions = []
+    for root, files in roots_by_project.items():
+        graph = SourceGraph(root)
+        versions.append((root, graph.version(graph.closure(files))))
+    if len(versions) == 1:
+        return versions[0][1]
+    digests = {f"{root}:{rel}": digest for root, version in versions for rel, digest in version.files.items()}
+    return CodeVersion(hash_bytes("".join(f"{k}\t{v}\n" for k, v in sorted(digests.items())).encode()), digests)

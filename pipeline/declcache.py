@@ -6,8 +6,8 @@ with the (path, size, mtime_ns) of every project source file loaded when the mod
 imported; if any of those files changed, the entry is ignored and the module imported again.
 For each distinct raw configuration of a stage (merged YAML + ``--set``) it keeps the
 validated, canonical params and the stage's external input paths. It also keeps the
-normalised-source digests of project files by stat, so code digests need not re-parse
-unchanged files. Only JSON is stored; a damaged cache file is ignored.
+normalised-source digests and import scans of project files by stat, so code digests need not
+re-parse unchanged files. Only JSON is stored; a damaged cache file is ignored.
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ from typing import Any
 from pipeline.hashing import hash_bytes
 from pipeline.stage import Stage
 
-_VERSION = 3
+_VERSION = 4
 _MAX_PARAM_ENTRIES = 32
 # Files modified this recently may change again within the same mtime tick with the same size
 # ("racy git"): nothing derived from them is cached until they have settled.
@@ -119,7 +119,7 @@ class DeclCache:
         except (OSError, ValueError):
             data = {}
         if not isinstance(data, dict) or data.get("version") != _VERSION:
-            data = {"version": _VERSION, "stages": {}, "files": {}}
+            data = {"version": _VERSION, "stages": {}, "files": {}, "scans": {}}
         self.data = data
 
     @classmethod
@@ -195,6 +195,20 @@ class DeclCache:
         if not _settled(mtime_ns):
             return
         self.data["files"][path] = [size, mtime_ns, digest]
+        self.dirty = True
+
+    def file_scan(self, path: str) -> tuple[list[str], list[str]] | None:
+        """A stored (imports, declared files) scan of a Python file, if its stat is unchanged."""
+        hit = self.data.setdefault("scans", {}).get(path)
+        if hit and self._stat(path) == (hit[0], hit[1]):
+            return hit[2], hit[3]
+        return None
+
+    def put_file_scan(self, path: str, size: int, mtime_ns: int, imports: list[str], code_files: list[str]) -> None:
+        """Store a file's import scan (not for files modified in the last two seconds)."""
+        if not _settled(mtime_ns):
+            return
+        self.data.setdefault("scans", {})[path] = [size, mtime_ns, imports, code_files]
         self.dirty = True
 
     def save(self) -> None:

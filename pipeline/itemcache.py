@@ -13,8 +13,8 @@ depends on (the frame file's content, the settings) and keeps results in its per
 
 Layout: ``<cache_dir>/items/<module.function>/<key[:2]>/<key>.npz``, written atomically; an
 unreadable entry is recomputed (with a warning). The entry's key is ``key_of(item)`` mixed
-with the code digest of the function's own module and of the ``code`` modules given (the
-same comment-blind digest as a stage's), so a change to what the code does recomputes every
+with the code digest of the function's own module and of the ``code`` modules given, with
+everything they import (the same comment-blind closure digest as a stage's), so a change to what the code does recomputes every
 item while a comment edit reuses them. Nothing in a workspace is unpickled (a cache folder is as
 exposed as any other), so results must be made of JSON values (dict with str keys, list,
 str, int, float, bool, None; tuples come back as lists) and numpy arrays: the structure is
@@ -43,7 +43,7 @@ import blake3
 
 import numpy as np
 
-from pipeline.codedigest import locate_module, module_files, normalised_source_digest
+from pipeline.codedigest import modules_code_version
 from pipeline.errors import PipelineError
 from pipeline.hashing import hash_file
 
@@ -69,14 +69,13 @@ def content_key(*parts: Any) -> str:
 
 
 def code_digest(modules: Sequence[str]) -> str:
-    """Digest of what the named modules or packages do (docstrings, comments and layout ignored)."""
+    """Digest of what the named modules and everything they import do (their import closure and
+    declared files, as a stage's code digest; docstrings, comments and layout ignored)."""
     hasher = blake3.blake3()
     for dotted in modules:
         hasher.update(dotted.encode() + b"\0")
-        if dotted == "__main__" or locate_module(dotted) is None:
-            continue  # a script or an interactive function: nothing stable to digest
-        for path in module_files(dotted):
-            hasher.update(f"{path.name}\t{normalised_source_digest(path)}\n".encode())
+    version = modules_code_version(modules)  # None for a script or an interactive function
+    hasher.update((version.digest if version is not None else "-").encode())
     return hasher.hexdigest()
 
 

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from pipeline.codedigest import changed_files
 from pipeline.dag import split_input
 from pipeline.errors import ConfigError, InputError
 from pipeline.hashing import hash_bytes, hash_path
@@ -74,11 +75,16 @@ class KeyMaterial:
     external: dict[str, str]
     input_keys: dict[str, str] | None = None
     earlier_input_keys: tuple[dict[str, str], ...] = ()
+    code_files: dict[str, str] | None = None
 
     def to_json(self) -> dict[str, Any]:
-        """The JSON form recorded in the action file."""
-        return {"stage": self.stage, "code": self.code, "params": self.params,
-                "inputs": self.inputs, "input_keys": self.keyed_inputs, "external": self.external}
+        """The JSON form recorded in the action file (``code_files``: the digest of each file
+        behind ``code``, so a later change can be named; not part of the key)."""
+        record = {"stage": self.stage, "code": self.code, "params": self.params,
+                  "inputs": self.inputs, "input_keys": self.keyed_inputs, "external": self.external}
+        if self.code_files is not None:
+            record["code_files"] = self.code_files
+        return record
 
     @property
     def keyed_inputs(self) -> dict[str, str]:
@@ -116,9 +122,10 @@ def key_material(project: Project, ws: Workspace, name: str, params: ResolvedPar
                 for inp, digest in input_digests.items()}
         with_records = {inp: ws.content_key(digest) for inp, digest in input_digests.items()}
         earlier = (with_records,) if with_records != keys else ()
-    return KeyMaterial(stage=name, code=project.code_digest(name), params=params.canonical,
+    code = project.code_version(name)
+    return KeyMaterial(stage=name, code=code.digest, params=params.canonical,
                        inputs=dict(input_digests), external=external_digests(name, params, ws), input_keys=keys,
-                       earlier_input_keys=earlier)
+                       earlier_input_keys=earlier, code_files=dict(code.files))
 
 
 def find_action(ws: Workspace, material: KeyMaterial) -> tuple[str, dict] | None:
@@ -167,13 +174,31 @@ def changed_params(old: dict[str, Any], new: dict[str, Any]) -> list[str]:
     return lines
 
 
+# How many changed files a status line names before it says "and N more".
+_NAMED_FILES = 6
+
+
+def describe_code_change(old_files: dict[str, str] | None, new_files: dict[str, str]) -> str:
+    """``code changed: scene/colour.py, ...``: the files whose digest differs from the last run's."""
+    if old_files is None:
+        return ("code changed: the last run was recorded before code digests covered every module a "
+                "stage imports (and its declared files); this run redoes it once, to key it by the "
+                "whole import closure")
+    changed = changed_files(old_files, new_files)
+    if not changed:
+        return "code changed"
+    named = ", ".join(changed[:_NAMED_FILES])
+    more = f" and {len(changed) - _NAMED_FILES} more" if len(changed) > _NAMED_FILES else ""
+    return f"code changed: {named}{more}"
+
+
 def describe_changes(old: dict[str, Any] | None, new: KeyMaterial) -> list[str]:
     """Why ``new`` differs from the recorded action ``old`` (code, params keys, inputs, external)."""
     if old is None:
         return ["the action record of the last run is missing"]
     reasons = []
     if old.get("code") != new.code:
-        reasons.append("code changed")
+        reasons.append(describe_code_change(old.get("code_files"), new.code_files or {}))
     params = changed_params(old.get("params", {}), new.params)
     if params:
         reasons.append("params changed: " + "; ".join(params))

@@ -115,11 +115,16 @@ class Project:
             self._imported[name] = loaded
         return self._imported[name]
 
-    def code_digest(self, name: str) -> str:
-        """The stage's code digest (its package + its ``Stage.code`` modules, normalised)."""
-        from pipeline.codedigest import stage_code_digest
+    def code_version(self, name: str):
+        """The stage's ``pipeline.codedigest.CodeVersion``: its package and every project file it
+        imports or declares, transitively, each with its digest."""
+        from pipeline.codedigest import stage_code_version
 
-        return stage_code_digest(self.stages[name], self.module_of(name), self.root, self.cache)
+        return stage_code_version(self.stages[name], self.module_of(name), self.root, self.cache)
+
+    def code_digest(self, name: str) -> str:
+        """The stage's code digest (``code_version(name).digest``)."""
+        return self.code_version(name).digest
 
     def subject_config(self, subject: str, *, preset: str | None = None, sets: list[str] = ()):
         """The layered config of ``subject`` (``pipeline.config.SubjectConfig``)."""

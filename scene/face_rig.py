@@ -19,7 +19,9 @@ from pathlib import Path
 
 import numpy as np
 
-DEFAULT_FACE_MODEL = Path(__file__).resolve().parent.parent / "assets" / "ict-facekit" / "ict_face_light.npz"
+# The shipped face model (declared so the code digest of every module using the rig covers it).
+CODE_FILES = ("../assets/ict-facekit/ict_face_light.npz",)
+DEFAULT_FACE_MODEL = (Path(__file__).parent / CODE_FILES[0]).resolve()
 CM_TO_M = 0.01
 
 # Multi-PIE 68 landmark groups (0-based indices into ``landmark_vertex_ids``).

@@ -24,28 +24,22 @@ import blake3
 import torch
 from safetensors.torch import load_file, save_file
 
-from pipeline.codedigest import normalised_source_digest
+from pipeline.codedigest import modules_code_version
+from pipeline.errors import PipelineError
 from stages.matte.modnet import MODNet, MattingNetConfig
 
 MODEL_FILE = "model.safetensors"
 META_FILE = "meta.json"
 
 
-def source_digest(paths: Iterable[Path]) -> str:
-    """BLAKE3 over source files (sorted by path, missing ones skipped).
-
-    Python files count by their normalised syntax tree (``pipeline.codedigest``), so a
-    comment-only edit does not retrain the model; other files by their bytes.
-    """
-    hasher = blake3.blake3()
-    for path in sorted(Path(p) for p in paths):
-        if path.is_file():
-            hasher.update(path.name.encode())
-            if path.suffix == ".py":
-                hasher.update(normalised_source_digest(path).encode())
-            else:
-                hasher.update(path.read_bytes())
-    return hasher.hexdigest()
+def training_code_digest(modules: Iterable[str]) -> str:
+    """The digest of the code that determines trained weights: the import closure of the
+    modules that render the training data and train (network, losses, augmentation, the virtual
+    studio, the rig file), as a stage's code digest; a comment-only edit does not retrain."""
+    version = modules_code_version(tuple(modules))
+    if version is None:
+        raise PipelineError(f"matting training modules {list(modules)} cannot be found")
+    return version.digest
 
 
 def cache_key(payload: dict[str, Any], code_digest: str) -> str:

@@ -64,12 +64,10 @@ from stages.matte.baseline import BaselineConfig
 from stages.matte.contact_sheet import write_contact_sheet
 from stages.matte.inputs import (bright_level, camera_reference, is_full_on, nearest_full_on, network_input,
                                  olat_scale)
-from stages.matte.model_cache import cache_key, load_or_train, source_digest
+from stages.matte.model_cache import cache_key, load_or_train, training_code_digest
 from stages.matte.studio_data import StudioDataConfig, collect, identity_jobs, render_identity
 from stages.matte.training import InputConfig, SocConfig, TrainConfig, soc_adapt, train_supervised
 
-MATTE_DIR = Path(__file__).resolve().parent
-ROOT = MATTE_DIR.parents[1]
 
 
 class MatteParams(StageParams):
@@ -93,13 +91,8 @@ class MatteParams(StageParams):
                          "thrashing on a small, shared CPU.")
 
 
-def training_code_files() -> list[Path]:
-    """Source files whose behaviour determines the trained weights (network, data, studio)."""
-    own = [MATTE_DIR / name for name in ("modnet.py", "losses.py", "augment.py", "inputs.py", "training.py",
-                                         "studio_data.py")]
-    studio = sorted((ROOT / "hardware" / "studio").glob("*.py"))
-    scene = sorted((ROOT / "scene").glob("*.py"))
-    return own + studio + scene + [ROOT / "configs" / "rig.yaml"]
+# The modules whose code determines the matting network's trained weights (with all they import).
+TRAINING_MODULES = ("stages.matte.training", "stages.matte.studio_data")
 
 
 def _device(params: MatteParams) -> str:
@@ -196,7 +189,7 @@ def trained_model(ctx: StageContext, params: MatteParams, image_scale: float, de
     """The supervised model from the shared cache, trained now if missing; returns (model, meta, cached)."""
     payload = {"train": params.train.model_dump(mode="json"), "data": params.data.model_dump(mode="json"),
                "image_scale": image_scale}
-    key = cache_key(payload, source_digest(training_code_files()))
+    key = cache_key(payload, training_code_digest(TRAINING_MODULES))
 
     def train() -> tuple[Any, dict[str, Any]]:
         start = time.perf_counter()

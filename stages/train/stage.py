@@ -47,6 +47,7 @@ from avatar.model import RelightableMVP, count_parameters
 from avatar.raymarch import RaymarchKernel, resolve_kernel
 from avatar.raymarch_fused import FusedKernelUnavailable
 from avatar.travatar import LightBasis
+from pipeline.codedigest import modules_code_version
 from pipeline.errors import ConfigError, InputError
 from pipeline.stage import Stage, StageContext, StageParams
 from stages.train.data import TrainData, load_train_data
@@ -156,9 +157,8 @@ def _run_key(params: TrainParams, inputs: dict[str, Path]) -> str:
     h = hashlib.sha256(params.model_dump_json(exclude={"processes", "parallel_models", "raymarch_kernel"}).encode())
     for name in sorted(inputs):
         h.update(f"{name}={Path(inputs[name]).resolve()}".encode())
-    root = Path(__file__).resolve().parents[2]
-    for path in sorted(list((root / "avatar").glob("*.py")) + list((root / "stages" / "train").glob("*.py"))):
-        h.update(path.read_bytes())
+    # The training code: this package and everything it imports (the same closure as the stage's digest).
+    h.update(modules_code_version(("stages.train",)).digest.encode())
     return h.hexdigest()[:20]
 
 
