@@ -46,6 +46,9 @@ CODE_FILES_NAME = "CODE_FILES"
 _FILE_CACHE: dict[tuple[str, int, int], str] = {}
 _SCAN_CACHE: dict[tuple[str, int, int], "FileScan"] = {}
 _STAGE_CACHE: dict[tuple[str, str, str], "CodeVersion"] = {}
+_RESOLVED: dict[str, dict[str, tuple[Path | None, tuple[Path, ...]]]] = {}
+_NEXT: dict[str, dict[tuple[Path, "FileScan"], tuple[Path, ...]]] = {}
+_ROOT_FILES: dict[tuple[str, str, tuple[str, ...]], list[Path]] = {}
 
 
 class _Declared(Protocol):
@@ -122,13 +125,18 @@ def _python_files(folder: Path) -> list[Path]:
 def locate_module(dotted: str, root: Path | None = None) -> tuple[Path, bool] | None:
     """(path, is_package) of a module's source without importing it: the project root first,
     then ``sys.path``; falls back to ``importlib.util.find_spec`` for anything else."""
+    parts = dotted.split(".")
+    if root is not None:  # the project's own copy first, whatever this process imported
+        folder = Path(root, *parts)
+        if (folder / "__init__.py").is_file():
+            return folder, True
+        if folder.with_suffix(".py").is_file():
+            return folder.with_suffix(".py"), False
     module = sys.modules.get(dotted)
     if module is not None and getattr(module, "__file__", None):
         path = Path(module.__file__)
         return (path.parent, True) if path.name == "__init__.py" else (path, False)
-    parts = dotted.split(".")
-    bases = ([str(root)] if root is not None else []) + [p for p in sys.path if p]
-    for base in bases:
+    for base in [p for p in sys.path if p]:
         folder = Path(base, *parts)
         if (folder / "__init__.py").is_file():
             return folder, True
@@ -268,7 +276,10 @@ class SourceGraph:
     def __init__(self, root: Path, store: _DigestStore | None = None) -> None:
         self.root = Path(root).resolve()
         self.store = store
-        self._resolved: dict[str, tuple[Path | None, tuple[Path, ...]]] = {}
+        # Which file a dotted name reaches depends only on which files exist: shared by every
+        # graph of this root in the process (``forget_cached_versions`` drops it).
+        self._resolved = _RESOLVED.setdefault(str(self.root), {})
+        self._next = _NEXT.setdefault(str(self.root), {})
 
     # -- modules and files ----------------------------------------------------------------
 
@@ -278,27 +289,28 @@ class SourceGraph:
         if hit is not None:
             return hit
         parts = dotted.split(".")
-        target: Path | None = None
-        inits: list[Path] = []
-        folder = self.root
+        target: str | None = None
+        inits: list[str] = []
+        folder = str(self.root)
+        isfile, isdir, join = os.path.isfile, os.path.isdir, os.path.join
         for i, part in enumerate(parts):
-            if not part.isidentifier() or (i == 0 and part.startswith(".")):
+            if not part.isidentifier():
                 break
-            package = folder / part
-            if (package / "__init__.py").is_file():
-                target = package / "__init__.py"
+            package = join(folder, part)
+            if isfile(join(package, "__init__.py")):
+                target = join(package, "__init__.py")
                 inits.append(target)
                 folder = package
-            elif package.with_suffix(".py").is_file():
-                target = package.with_suffix(".py")
+            elif isfile(package + ".py"):
+                target = package + ".py"
                 break
-            elif package.is_dir() and i < len(parts) - 1 and not part.startswith("."):
+            elif i < len(parts) - 1 and isdir(package):
                 folder = package  # a namespace package: nothing runs, look further down
             else:
                 break
-        if target is not None and target.name == "__init__.py":
+        if target is not None and target.endswith("__init__.py"):
             inits = inits[:-1]
-        result = (target, tuple(inits))
+        result = (Path(target) if target is not None else None, tuple(Path(p) for p in inits))
         self._resolved[dotted] = result
         return result
 
@@ -362,7 +374,7 @@ class SourceGraph:
     def closure(self, roots: Iterable[Path]) -> list[Path]:
         """Every project file reachable from ``roots`` through imports (with the parent packages'
         ``__init__.py``) and the files those modules declare; sorted."""
-        todo = [Path(p).resolve() for p in roots]
+        todo = [Path(p) if Path(p).is_absolute() else Path(p).resolve() for p in roots]
         seen: set[Path] = set()
         data: set[Path] = set()
         while todo:
@@ -370,16 +382,29 @@ class SourceGraph:
             if path in seen:
                 continue
             seen.add(path)
-            module, _ = _module_name(path, self.root)
-            _, own_inits = self._resolve(module)
-            todo.extend(own_inits)
-            for dotted in self.scan(path).imports:
-                target, inits = self._resolve(dotted)
-                todo.extend(inits)
-                if target is not None:
-                    todo.append(target)
-            data.update(self.declared_files(path))
+            scan = self.scan(path)
+            todo.extend(self._next_files(path, scan))
+            if scan.code_files:
+                data.update(self.declared_files(path))
         return sorted(seen | data)
+
+    def _next_files(self, path: Path, scan: FileScan) -> tuple[Path, ...]:
+        """The files running ``path`` runs next: its parent packages' ``__init__.py`` and, for each
+        import, the module's file and its parents' (memoised per scan of the file)."""
+        key = (path, scan)
+        hit = self._next.get(key)
+        if hit is not None:
+            return hit
+        module, _ = _module_name(path, self.root)
+        found: list[Path] = list(self._resolve(module)[1])
+        for dotted in scan.imports:
+            target, inits = self._resolve(dotted)
+            found.extend(inits)
+            if target is not None:
+                found.append(target)
+        result = tuple(dict.fromkeys(found))
+        self._next[key] = result
+        return result
 
     def version(self, files: Iterable[Path]) -> CodeVersion:
         """The ``CodeVersion`` of a set of files (Python by normalised syntax tree, others by bytes)."""
@@ -410,9 +435,13 @@ def stage_source_files(stage: _Declared, module_name: str, root: Path,
     module file for a top-level module), every ``Stage.code`` module, and everything they import
     or declare, transitively; sorted, no duplicates."""
     graph = SourceGraph(root, store)
-    roots = [p.resolve() for p in _own_files(module_name, root, stage.name)]
-    for dotted in stage.code:
-        roots.extend(p.resolve() for p in module_files(dotted, root))
+    key = (str(graph.root), module_name, tuple(stage.code))
+    roots = _ROOT_FILES.get(key)
+    if roots is None:
+        roots = [p.resolve() for p in _own_files(module_name, graph.root, stage.name)]
+        for dotted in stage.code:
+            roots.extend(p.resolve() for p in module_files(dotted, graph.root))
+        _ROOT_FILES[key] = roots
     return graph.closure(roots)
 
 
@@ -434,9 +463,14 @@ def stage_code_digest(stage: _Declared, module_name: str, root: Path, store: _Di
     return stage_code_version(stage, module_name, root, store).digest
 
 
-def forget_cached_versions() -> None:
-    """Drop this process's per-stage code versions (files edited while the process runs)."""
+def forget_cached_versions(*, resolutions: bool = True) -> None:
+    """Drop this process's per-stage code versions (files edited while the process runs) and,
+    unless ``resolutions`` is False, which file each module name reaches (files added or removed)."""
     _STAGE_CACHE.clear()
+    if resolutions:
+        _RESOLVED.clear()
+        _NEXT.clear()
+        _ROOT_FILES.clear()
 
 
 def _root_of(dotted: str) -> tuple[Path, Path] | None:

@@ -181,9 +181,9 @@ _NAMED_FILES = 6
 def describe_code_change(old_files: dict[str, str] | None, new_files: dict[str, str]) -> str:
     """``code changed: scene/colour.py, ...``: the files whose digest differs from the last run's."""
     if old_files is None:
-        return ("code changed: the last run was recorded before code digests covered every module a "
-                "stage imports (and its declared files); this run redoes it once, to key it by the "
-                "whole import closure")
+        # Records from before the import-closure digest cannot tell which files the run used:
+        # the stage reruns once rather than trusting files its old digest did not cover.
+        return "code changed: last run recorded before digests covered the whole import closure (reruns once)"
     changed = changed_files(old_files, new_files)
     if not changed:
         return "code changed"

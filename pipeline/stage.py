@@ -10,8 +10,10 @@ A stage module (``stages/<name>/stage.py``) exposes one module-level ``STAGE``::
         ...write files under ctx.out ...
         ctx.metrics["olat_angle_mean_deg"] = 61.2
 
-    STAGE = Stage(name="sequence", inputs=(), params=SequenceParams, run=run,
-                  code=("scene",))
+    STAGE = Stage(name="sequence", inputs=(), params=SequenceParams, run=run)
+
+The stage's code digest covers its own package and every project module it imports,
+transitively (``pipeline.codedigest``); ``code`` names only what imports cannot show.
 
 Rules (STYLE.md house rules 1-3):
 - ``run`` reads only ``ctx.inputs[...]`` (read-only folders of upstream outputs), its
@@ -124,8 +126,10 @@ class Stage:
         inputs: upstream outputs by name (``"calibrate"``, or ``"capture.truth"`` for eval stages).
         params: the params class (a ``StageParams`` subclass).
         run: the function that does the work.
-        code: project modules or packages (dotted names, e.g. ``"scene"``, ``"avatar.raymarch"``)
-            whose source counts toward this stage's code digest, besides the stage's own package.
+        code: project modules or packages (dotted names) whose source counts toward this stage's
+            code digest although no import reaches them (a module run by name in a subprocess,
+            outside the stage's package). Everything the stage's package imports, transitively,
+            counts already, and so do the non-Python files those modules declare in ``CODE_FILES``.
         extra_outputs: names of extra output objects (e.g. ``("truth",)``).
         reads_truth: may take ``*.truth`` inputs; defaults to names ending in ``_eval``.
         external_inputs: maps params to files/folders outside the workspace that the stage reads

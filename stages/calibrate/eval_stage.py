@@ -122,4 +122,4 @@ def run(ctx: StageContext) -> None:
 
 
 STAGE = Stage(name="calibrate_eval", inputs=("calibrate", "capture.truth"), params=CalibrateEvalParams, run=run,
-              evaluates="calibrate", code=("scene",), doc="Camera calibration accuracy against ground truth.")
+              evaluates="calibrate", doc="Camera calibration accuracy against ground truth.")

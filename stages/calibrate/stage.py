@@ -243,5 +243,5 @@ def _reason_summary(verdicts: list[FrameVerdict]) -> str:
     return ", ".join(f"{k}: {n}" for k, n in sorted(reasons.items()))
 
 
-STAGE = Stage(name="calibrate", inputs=("capture",), params=CalibrateParams, run=run, code=("scene",),
+STAGE = Stage(name="calibrate", inputs=("capture",), params=CalibrateParams, run=run,
               doc="ChArUco board takes -> intrinsics, distortion, extrinsics (pycolmap BA), COLMAP export.")

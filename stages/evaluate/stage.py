@@ -329,7 +329,6 @@ STAGE = Stage(
     inputs=("train", "track", "capture", "capture.truth"),
     params=EvaluateParams,
     run=run,
-    code=("avatar", "hardware.studio", "scene", "stages.relight.render", "stages.relight.sequences"),
     reads_truth=True,
     doc="Stability sweeps against ground truth: light orbit (extrapolation limit) and expression magnitude.",
 )

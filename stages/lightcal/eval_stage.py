@@ -55,4 +55,4 @@ def run(ctx: StageContext) -> None:
 
 
 STAGE = Stage(name="lightcal_eval", inputs=("lightcal", "capture.truth"), params=LightcalEvalParams, run=run,
-              evaluates="lightcal", code=("scene",), doc="LED bar placement accuracy against ground truth.")
+              evaluates="lightcal", doc="LED bar placement accuracy against ground truth.")

@@ -461,5 +461,5 @@ def _axis_and_length(rays, centre: np.ndarray, radius: float, min_elongation: fl
     return axis, float(np.sqrt(12.0) * np.median(sigmas)), len(dirs)
 
 
-STAGE = Stage(name="lightcal", inputs=("capture", "calibrate"), params=LightcalParams, run=run, code=("scene",),
+STAGE = Stage(name="lightcal", inputs=("capture", "calibrate"), params=LightcalParams, run=run,
               doc="LED bar positions from their highlights in mirror spheres.")

@@ -103,5 +103,5 @@ def run(ctx: StageContext) -> None:
 
 
 STAGE = Stage(name="matte_eval", inputs=("matte", "capture", "capture.truth"), params=MatteEvalParams, run=run,
-              code=("scene.image_io",), evaluates="matte",
+              evaluates="matte",
               doc="Matte accuracy (MAE, MSE, gradient error) on F and OLAT frames, beside the classical baseline.")

@@ -341,5 +341,4 @@ def run(ctx: StageContext) -> None:
 
 
 STAGE = Stage(name="matte", inputs=("capture",), params=MatteParams, run=run,
-              code=("scene.image_io", "scene.rig", "hardware.studio"),
               doc="Alpha matte per image: MODNet-style network trained on other studio subjects, SOC-adapted.")

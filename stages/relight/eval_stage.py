@@ -104,7 +104,6 @@ STAGE = Stage(
     inputs=("relight", "capture.truth"),
     params=RelightEvalParams,
     run=run,
-    code=("scene", "avatar.metrics", "hardware.studio"),
     evaluates="relight",
     doc="PSNR/SSIM of envmap and point-light relights against the studio's ray-traced ground truth.",
 )

@@ -322,7 +322,6 @@ STAGE = Stage(
     inputs=("train", "track", "capture"),
     params=RelightParams,
     run=run,
-    code=("scene", "avatar"),
     external_inputs=_external,
     doc="Render the trained head under environment maps, point lights, new views and expressions (EXR, PNG, MP4).",
 )

@@ -128,6 +128,5 @@ STAGE = Stage(
     inputs=(),
     params=SequenceParams,
     run=run,
-    code=("scene.rig", "hardware.led.protocol"),
     doc="OLAT order of the LED bars (max dissimilarity), the capture pattern, schedule and controller program.",
 )

@@ -56,4 +56,4 @@ def run(ctx: StageContext) -> None:
 
 
 STAGE = Stage(name="stabilize_eval", inputs=("stabilize", "capture.truth"), params=StabilizeEvalParams, run=run,
-              code=("scene",), evaluates="stabilize", doc="Head-space cameras against ground truth.")
+              evaluates="stabilize", doc="Head-space cameras against ground truth.")

@@ -46,5 +46,5 @@ def run(ctx: StageContext) -> None:
     ctx.log.info("wrote head-space cameras for %d frames x %d cameras", len(index), len(cameras))
 
 
-STAGE = Stage(name="stabilize", inputs=("track", "calibrate"), params=StabilizeParams, run=run, code=("scene",),
+STAGE = Stage(name="stabilize", inputs=("track", "calibrate"), params=StabilizeParams, run=run,
               doc="Per-frame cameras in head space (cam_from_head = cam_from_world @ world_from_head).")

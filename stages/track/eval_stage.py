@@ -107,4 +107,4 @@ def run(ctx: StageContext) -> None:
 
 
 STAGE = Stage(name="track_eval", inputs=("track", "capture.truth"), params=TrackEvalParams, run=run,
-              code=("scene",), evaluates="track", doc="Tracking accuracy against ground truth.")
+              evaluates="track", doc="Tracking accuracy against ground truth.")

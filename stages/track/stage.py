@@ -267,5 +267,5 @@ def run(ctx: StageContext) -> None:
     ctx.metrics.update(metrics)
 
 
-STAGE = Stage(name="track", inputs=("capture", "calibrate"), params=TrackParams, run=run, code=("scene",),
+STAGE = Stage(name="track", inputs=("capture", "calibrate"), params=TrackParams, run=run,
               doc="Landmark blendshape tracking on full-on frames; pose and weights for every frame.")

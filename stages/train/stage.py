@@ -587,7 +587,7 @@ def _write_previews(folder: Path, t: TrainTensors, pairs: dict, renders: dict, c
 
 
 STAGE = Stage(name="train", inputs=("capture", "stabilize", "track", "matte", "lightcal"), params=TrainParams,
-              run=run, code=("avatar",), doc=__doc__ or "",
+              run=run, doc=__doc__ or "",
               # Wall-clock records: two runs of the same deterministic training differ only here (and in
               # metrics.json), so relight and evaluate, which read the models, need not rerun.
               run_records=("curve.json", "learning_curve.png", "tensorboard/*", "tradeoffs/learning_curve.json"))

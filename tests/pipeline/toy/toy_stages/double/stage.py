@@ -40,4 +40,4 @@ if os.environ.get("TOY_IMPORT_LOG"):
         _log.write(__name__ + "\n")
 
 
-STAGE = Stage(name="double", inputs=("source",), params=DoubleParams, run=run, code=("toy_lib.arith",))
+STAGE = Stage(name="double", inputs=("source",), params=DoubleParams, run=run)

@@ -1,0 +1,87 @@
+"""No import cycles between project files, imports inside functions included.
+
+A cycle makes a module's meaning depend on which of its partners happened to be imported
+first, and hides a dependency behind a function-level import; the code digest's closure would
+still be right, but the design would not. The graph is read from the source with the same
+scanner the code digest uses (``pipeline.codedigest.SourceGraph``).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from pipeline.codedigest import SourceGraph
+
+REPO = Path(__file__).resolve().parents[1]
+PACKAGES = ("pipeline", "stages", "scene", "hardware", "avatar", "benchmarks")
+
+
+def _project_files(graph: SourceGraph) -> list[Path]:
+    return sorted(p.resolve() for top in PACKAGES for p in (graph.root / top).rglob("*.py")
+                  if "__pycache__" not in p.parts)
+
+
+def strongly_connected(edges: dict[Path, list[Path]]) -> list[list[Path]]:
+    """Tarjan's components of more than one node (iterative: the graph may be deep)."""
+    index: dict[Path, int] = {}
+    low: dict[Path, int] = {}
+    on_stack: set[Path] = set()
+    stack: list[Path] = []
+    components: list[list[Path]] = []
+    counter = 0
+    for start in edges:
+        if start in index:
+            continue
+        work = [(start, iter(edges.get(start, ())))]
+        index[start] = low[start] = counter
+        counter += 1
+        stack.append(start)
+        on_stack.add(start)
+        while work:
+            node, children = work[-1]
+            advanced = False
+            for child in children:
+                if child not in index:
+                    index[child] = low[child] = counter
+                    counter += 1
+                    stack.append(child)
+                    on_stack.add(child)
+                    work.append((child, iter(edges.get(child, ()))))
+                    advanced = True
+                    break
+                if child in on_stack:
+                    low[node] = min(low[node], index[child])
+            if advanced:
+                continue
+            work.pop()
+            if work:
+                parent = work[-1][0]
+                low[parent] = min(low[parent], low[node])
+            if low[node] == index[node]:
+                component = []
+                while True:
+                    member = stack.pop()
+                    on_stack.discard(member)
+                    component.append(member)
+                    if member == node:
+                        break
+                if len(component) > 1:
+                    components.append(component)
+    return components
+
+
+def test_the_cycle_finder_finds_cycles() -> None:
+    a, b, c, d = (Path(x) for x in "abcd")
+    found = strongly_connected({a: [b], b: [c], c: [a], d: [a]})
+    assert [sorted(map(str, comp)) for comp in found] == [["a", "b", "c"]]
+    assert strongly_connected({a: [b], b: [c], c: [], d: [a]}) == []
+
+
+def test_no_import_cycles_between_project_files() -> None:
+    graph = SourceGraph(REPO)
+    files = _project_files(graph)
+    assert len(files) > 150
+    edges = {path: graph.imported_files(path) for path in files}
+    cycles = [sorted(graph.relpath(p) for p in comp) for comp in strongly_connected(edges)]
+    assert cycles == [], "import cycles (break each by moving what both need into a module of its own): " + \
+        "; ".join(" <-> ".join(cycle) for cycle in cycles)
