@@ -1,82 +1,35 @@
-"""Capacity a capture needs: primitives, voxel resolution and channel widths chosen from the capture.
+"""The capacity a capture needs: primitives, voxels, channel widths, raymarch steps and latent size.
 
 The model's resolution on the head is the decoder's UV image: N*M texels per side, N
 primitives of M voxels each, laid over the head's outer surface (``avatar.layout``: a
-latitude-longitude grid over +-theta of azimuth). Along a row, the layout spans an arc of
+latitude-longitude grid over +-theta of azimuth). Along a row the layout spans an arc of
 ``2 theta R`` around a head whose width in the images is ``2 R`` pixels, i.e.
 ``theta * footprint_px`` pixels, so one UV texel covers::
 
     texel_px = theta * footprint_px / (N * M)
 
-pixels of the images (a primitive's box is ``prim_overlap`` texel rows wide per voxel row, so
-a voxel projects to ``voxel_px = prim_overlap * texel_px``). Texels much finer than a pixel
-are capacity the images cannot supervise (every pixel averages several of them), so the
-rule takes the largest power-of-two ``N * M`` whose texels stay at least ``min_texel_px``
-pixels wide, splits it into N and M as the paper does (N = 4 M), takes enough raymarch
-steps for about one sample per texel across the head, and lets the decoder width grow with
-the number of training frames (cube root, within bounds): more frames, more appearance
-variation to hold, more channels; few frames, a narrow decoder that cannot memorise them.
+pixels of the images, and a voxel projects to ``voxel_px = prim_overlap * texel_px``.
 
-The latent code z follows what the training meshes span: ``count_expression_modes`` counts
-the principal components of the (head-space) training meshes that hold 99.9% of their
-variance about the mean, and the rule gives z two dimensions per mode, up to a power of two
-within [8, 256]. The likely reason a narrower code generalises better: a code much wider than
-the meshes' own dimensions leaves the encoder room to give each training frame a private
-direction that the decoder ties to that frame's image, and a novel expression then lands off
-the training codes (on bob's novel performance, z = 64 renders scrambled patches where z = 16
-renders a coherent face). On the tiny captures 45 training frames span 6 modes, so z = 16
-(64 before this rule). Over 5 seeds on bob (tiny preset, ours, the same seeds at z = 16 and
-z = 64; ``SEEDS_SET='{"capacity_rule": {"latent_per_mode": 0}}'`` gives ``bench_seeds`` the
-old z = 64) z = 16 gains 1.0 dB [0.1, 1.9] (95% interval) on novel performance, 1.2 dB
-[0.2, 2.2] on novel light and performance together and 0.2 dB (not resolved) on novel light.
+The rule (``choose_capacity``, constants in ``CapacityRule``):
 
-The default ``min_texel_px = 2`` comes from the measured curve, not from first principles:
-``benchmarks/bench_capacity.py`` (held-out PSNR against N*M, tiny preset, alice, the same
-training for every size) puts the knee at N*M = 32 (texels of 3 px) after 300, 1000 and
-2000 iterations per size (2000 = the tiny preset's budget: 19.15 / 22.82 / 24.15 / 22.94 dB
-for N*M = 16 / 32 / 64 / 128 at 25 / 19 / 11.5 / 4.1 it/s). The next size up, N*M = 64
-(texels of 1 px, the principle's own choice), is better by a margin that grows with
-training (0.24 dB after 300 iterations, 0.54 dB after 1000, 1.3 dB after 2000) at 1.7x the
-cost per iteration: past the knee, but worth it when quality matters more than time
-(``capacity_rule.min_texel_px: 1``); N*M = 128 is worse than 64 at these budgets. With texels of 1 px the rule also gives the paper's
-N*M = 1024 for a head ~620 px wide in 768 px images. Earlier constants, each moved by a
-measurement: voxels no finer than a pixel (N*M = 128 here) and texels no finer than a pixel
-(knee at 64 on an earlier capture of alice).
-
-The tiny preset spends the time that training both models side by side saves
-(``train.parallel_models``) on that next size: ``min_texel_px: 1`` gives N=16, M=4 and 32
-steps on bob and alice. Over 5 seeds on bob (both models, 2500 iterations,
-``SEEDS_TAG=tex1 SEEDS_SET='{"capacity_rule": {"min_texel_px": 1.0}}'``), against the knee's
-N=16, M=2 on the same seeds, ours gains +1.46 [+1.09, +1.84] / +2.14 [+1.15, +3.13] /
-+1.84 [+1.20, +2.48] / +1.80 [+1.50, +2.11] dB (novel light / performance / both / training
-images, 95% intervals) and TRAvatar* +1.40 / +1.42 / +1.49 / +1.85, every one resolved, at
-1.5x the cost per iteration (one model alone: 295 s against 197 s, seed 0). Both models
-side by side take 323 s of training a seed (303 to 347), less than the ~390 s the smaller
-size's two took one after another in an earlier run on the same CPU. At this size, 16 steps
-instead of the rule's 32 train both in 239 s a seed, but cost ours 0.33 dB [0.03, 0.62] on novel
-light over seeds 0-2 (+0.09 on novel performance, the rest unresolved;
-``SEEDS_TAG=st16 SEEDS_SET='{"capacity_rule": {"max_steps": 16}}'``), so the rule keeps 32. The size after, N*M = 128 (``min_texel_px: 0.5``, N=32), lost 5.8 dB
-for ours on seed 0 at 3x the cost, and 5000 iterations at N*M = 64 gained another 1.0 to
-1.6 dB on seed 0 at twice the time, past the tiny budget.
-
-The steps are spread over a ray's whole span through the boxes (``avatar.raymarch``), most of
-which lies past where the ray turns opaque: on bob (ours, seed 0, N=16, M=2, 16 steps, 4
-frames x 10 cameras) foreground rays cross 9.8 cm of boxes at the median and are opaque after
-3.3 cm (31% of the span; 62% at the 90th percentile), about one mean box edge (3.0 cm). Yet
-neither more samples nor samples moved forward paid on bob (both models, 2500 iterations,
-against the same seeds at the rule's 16 steps; ``benchmarks/bench_seeds.py``). 32 steps, over
-seeds 0-4 (``SEEDS_TAG=steps32 SEEDS_SET='{"capacity_rule": {"min_steps": 32}}'``), move ours
-by -0.18 / +0.01 / -0.02 / -0.14 dB (novel light / performance / both / training images, no
-interval excluding 0) and TRAvatar* by +0.30 / +0.28 / +0.32 / +0.28 (novel performance
-resolved, [+0.03, +0.53]), at 7.9 min a seed for both models run alone (about 7 at 16
-steps in earlier runs on the same CPU); and sampling only the first two
-mean box edges past a ray's entry (16 steps there) lost 0.3 to 1.4 dB on seeds 0 and 2 for
-both models, the training images included. So the rule keeps its 16.
+- N*M is the largest power of two whose texels stay at least ``min_texel_px`` pixels wide:
+  texels much finer than a pixel are capacity the images cannot supervise. It is split into N
+  primitives of M voxels with N = 2^k M (``prims_over_voxels_log2``; the paper's N = 4 M).
+- Raymarch steps: about one sample per texel across the head (N*M / theta, rounded to a power
+  of two within ``[min_steps, max_steps]``).
+- Decoder width: ``width_per_cbrt_frame`` times the cube root of the number of training
+  frames, within bounds: more frames hold more appearance variation and get more channels;
+  few frames get a narrow decoder that cannot memorise them.
+- Latent size: ``latent_per_mode`` dimensions per expression mode of the (head-space) training
+  meshes (``count_expression_modes``: the principal components that hold
+  ``expression_variance`` of their variance about the mean), rounded up to a power of two
+  within ``[min_latent, max_latent]``.
 
 ``choose_capacity`` is pure (numbers in, an ``AvatarConfig`` out); ``footprint_from_mattes``
 measures the footprint from the training mattes; ``find_knee`` locates the knee of a measured
 capacity curve (Kneedle, Satopaa et al. 2011), which ``benchmarks/bench_capacity.py`` uses to
-check that the rule's default sits at the knee.
+check that the rule's default sits at the knee. How the defaults were chosen, with the
+measurements behind them: ``docs/experiments.md``, section 2.
 """
 
 from __future__ import annotations
@@ -97,8 +50,9 @@ class CapacityRule(BaseModel):
 
     min_texel_px: float = Field(
         2.0, gt=0, description="Smallest UV texel pitch on the head, in image pixels, the rule allows: it picks "
-        "the largest power-of-two N*M whose texels stay at least this wide (1 = texels no finer than pixels; "
-        "see the module docstring for how the default was measured).")
+        "the largest power-of-two N*M whose texels stay at least this wide (1 = texels no finer than pixels). "
+        "Lower it for a finer, slower model when quality matters more than time (the tiny preset uses 1); "
+        "docs/experiments.md, section 2, has the measured curve behind the default.")
     prims_over_voxels_log2: int = Field(
         2, ge=0, le=6, description="log2(N / M) of the split of N*M into N primitives of M voxels per side "
         "(2: N = 4 M, as the paper's 64 x 16 and tiny's 16 x 4).")

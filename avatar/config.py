@@ -33,8 +33,9 @@ class AvatarConfig(BaseModel):
         "latlong",
         description="How the N x N grid maps onto the head (avatar.layout.grid_directions): 'latlong' (rows of "
                     "equal elevation, pole straight up, crown above the top row left out) or 'azimuthal' "
-                    "(equidistant map centred in front at layout_centre_elevation_deg, reaching over the crown; 1.6 "
-                    "to 3.3 dB worse on bob's seed 0, see avatar.layout).")
+                    "(equidistant map centred in front at layout_centre_elevation_deg, reaching over the crown). "
+                    "Keep 'latlong' unless you are experimenting with covering the crown: 'azimuthal' was less "
+                    "accurate on the tiny preset (docs/experiments.md, section 3).")
     layout_elevation_deg: tuple[float, float] = Field(
         (-75.0, 70.0), description="Bottom and top of the grid in degrees of elevation (along the central meridian "
                                    "for 'azimuthal', where a top above 90 reaches over the crown towards the back).")
@@ -44,15 +45,12 @@ class AvatarConfig(BaseModel):
         description="Axes in which the per-primitive view and light directions are fed to the appearance branch: "
                     "'world' (head space, as the paper) or 'primitive' (each primitive's own rotated axes, so the "
                     "cosine to the surface normal is one input channel everywhere on the UV layout). Both models' "
-                    "view directions follow it. The same vectors either way. Measured on the tiny preset over "
-                    "seeds 0-4 at z = 16 (benchmarks/bench_seeds.py, SEEDS_TAG=prim): 'primitive' minus 'world' "
-                    "for ours is -0.01 / -0.51 / -0.61 dB on bob and -0.12 / -0.44 / -0.16 dB on alice (novel "
-                    "light / performance / both), no interval excluding 0; it gains nothing, so 'world', the "
-                    "paper's, stays the default.")
+                    "view directions follow it. The same vectors either way. 'world', the paper's, is the default; "
+                    "'primitive' gained nothing when measured over seeds (docs/experiments.md, section 1).")
     untied_bias: bool = Field(False, description="Every transposed conv of the decoder branches also adds a learnt "
                               "bias per output pixel (MVP's untied biases): each texel's static colour and opacity "
-                              "is a parameter of its own. Both models alike. Measured on tiny (bob, 5 seeds): ours "
-                              "+0.1 to +0.25 dB, TRAvatar* +0.3 to +0.55 dB (docs/tiny-accuracy.md); off by default.")
+                              "is a parameter of its own. Both models alike. Off by default: on the tiny preset it "
+                              "raised the baseline more than ours (docs/experiments.md, section 1).")
     light_basis: int = Field(0, description="TRAvatar*: number of training lights in the fixed one-hot light basis (0 = ours).")
 
     @model_validator(mode="after")

@@ -10,27 +10,14 @@ coordinates) on the mesh, so it follows the mesh as it deforms. Only the vertice
 anchor triangles are kept as the guide mesh ("decimation" to <= 3 N^2 vertices); the
 encoder reads them and the decoder predicts them.
 
-What the grid misses: the crown above 70 degrees of elevation. In views from above it is
-most of the foreground the model leaves transparent (the train stage's
-``*_uncovered_fraction``: 4 to 7.5% of bob's foreground pixels, 10 to 30% of the squared
-error on his held-out splits, ours at z = 16, seeds 0, 2, 4). Stretching the rows up to 85
-degrees does not pay on the tiny preset: it coarsens every row and crowds the top rows'
-columns near the pole. Ours on bob, seeds 0 to 3, 2500 iterations, against the same seeds at
-70 degrees: novel light -0.72, novel performance -0.24, both -0.48, training images -0.63 dB
-on average (seed 0 gained about 0.3 dB everywhere, seeds 1 to 3 lost up to 1.9 dB). Covering
-the crown needs another parametrisation (a grid whose pole is not on the head), not more rows.
-
-The ``azimuthal`` projection is such a grid, and it does not pay either: centred at 20 degrees
-of elevation, +-105 degrees wide, from -75 up to 100 degrees along the front meridian (over the
-crown), bob's seed 0 lost 1.6 to 3.3 dB on every split and on the training images, 1.2 to
-3.0 dB for TRAvatar* (ours: novel light / performance / both / training images 21.64 / 23.07 /
-21.90 / 25.20 dB against 24.59 / 24.67 / 25.19 / 27.30 with ``latlong``; ``SEEDS_TAG=az``,
-stopped after that seed). Its corners wrap round to the back
-of the head, and a ray is sampled evenly over its whole span through the boxes
-(``avatar.raymarch``): the boxes behind the ears lengthen the rays' spans and thin their
-samples where the face is (bob, frame 0, all cameras, the models' initial boxes: foreground
-rays cross 12.7 cm of boxes at the median and 21.1 cm at the 90th percentile, against
-8.5 and 18.2 cm with ``latlong``). ``latlong`` stays the default.
+What the grid misses: the crown above the top row (70 degrees of elevation by default). In
+views from above it is most of the foreground a trained model leaves transparent (the train
+stage's ``*_uncovered_fraction``). Stretching the rows higher does not pay: it coarsens every
+row and crowds the top rows near the pole; covering it needs a grid whose pole is not on the
+head. The ``azimuthal`` projection is such a grid (an equidistant map centred in front,
+reaching over the crown), but its corners wrap round behind the ears and lengthen the rays'
+spans through the boxes, which thins the samples where the face is. ``latlong`` stays the
+default; docs/experiments.md, section 3, has the measurements.
 """
 
 from __future__ import annotations

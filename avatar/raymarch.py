@@ -21,19 +21,18 @@ Three implementations give the same images:
   pass per ray over its samples and boxes, nothing per (sample, box) pair kept, each ray
   taken into its candidate boxes' frames in the kernel, and each ray stopped at its first
   sample past opacity 1 (bit for bit the same result: later samples have a share of 0); what
-  ``kernel="auto"`` runs on the CPU. Measured against the tensor path on the tiny head
-  (``python -m benchmarks.bench_raymarch``, 1 thread, two runs): forward + backward 7.4-8.2x
-  faster at the tiny preset's 2048 rays and 14.7-15.0x at 16 times that, 6.6x less memory kept
-  for backward, the tiny training step 2.6x the iterations/s (25.6-25.9 against 9.9-10.0). In
-  float64 both paths agree to ~1e-14; in float32, a sample within rounding of a box face
-  can fall on either side, so a few rays in 10^4 differ by up to ~3e-3.
+  ``kernel="auto"`` runs on the CPU. Several times faster than the tensor path, with much less
+  memory kept for backward (``python -m benchmarks.bench_raymarch``; the figures are in
+  docs/experiments.md, section 4). In float64 both paths agree to ~1e-14; in float32, a
+  sample within rounding of a box face can fall on either side, so a few rays in 10^4 differ
+  by up to ~3e-3.
 - ``raymarch(kernel="torch")``: the tensor-op fast path, CPU or GPU; keeps per ray only the
   primitives its ray hits, keeps only (sample, primitive) pairs that lie inside the box (from the entry/exit
   distances, no per-sample test), does the trilinear lookup with 8 gathers on those pairs
   only and scatters the results back with ``index_add``. Boxes go to local coordinates by
   one matrix per box with the half extents folded in, and the every-ray-against-every-box
-  slab test is two batched matmuls and a single reciprocal (measured 1.1-1.3x the training
-  iterations per second of per-pair einsums and divisions on the tiny head, CPU).
+  slab test is two batched matmuls and a single reciprocal (faster than per-pair einsums and
+  divisions; docs/experiments.md, section 4).
 """
 
 from __future__ import annotations

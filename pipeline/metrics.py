@@ -1,4 +1,4 @@
-"""Stage metrics: flat ``key -> JSON number`` dicts, units in the key (see METRICS.md)."""
+"""Stage metrics: flat ``key -> JSON number`` dicts, units in the key (required keys: docs/design.md)."""
 
 from __future__ import annotations
 

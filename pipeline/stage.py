@@ -15,7 +15,7 @@ A stage module (``stages/<name>/stage.py``) exposes one module-level ``STAGE``::
 The stage's code digest covers its own package and every project module it imports,
 transitively (``pipeline.codedigest``); ``code`` names only what imports cannot show.
 
-Rules (STYLE.md house rules 1-3):
+Rules (docs/design.md, stage contracts and house rules 1-3):
 - ``run`` reads only ``ctx.inputs[...]`` (read-only folders of upstream outputs), its
   params and files it declares through ``external_inputs``; it writes only under
   ``ctx.out`` (and ``ctx.extra_outputs[...]`` for declared extra outputs).

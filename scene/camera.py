@@ -1,6 +1,6 @@
 """Pinhole camera with OpenCV distortion; world-to-camera extrinsics.
 
-Conventions (DESIGN.md section 5): metres, right-handed world, OpenCV camera frame
+Conventions (docs/design.md, section 6): metres, right-handed world, OpenCV camera frame
 (x right, y down, z forward). ``cam_from_world`` maps a world point ``X`` to camera
 coordinates ``R @ X + t``. Distortion follows OpenCV's 5-parameter model
 ``(k1, k2, p1, p2, k3)``. Pixel centres are at integer coordinates (OpenCV's convention),

@@ -1,7 +1,7 @@
 """The virtual studio's calibration takes: a ChArUco board and mirror spheres.
 
 Both are ray-cast through ``scene.camera.Camera.pixel_rays``, so lens distortion in the
-images is exactly the camera model's. Output layout (TEAM.md, capture object)::
+images is exactly the camera model's. Output layout (within the capture's output, docs/design.md)::
 
     calib/board.json                     board spec + the reference (fixture) pose of frame 0
     calib/charuco/<cam>/<k:04d>.exr      board pose k as seen by <cam> (absent: board not in view)

@@ -33,8 +33,7 @@ def single_threaded_opencv() -> Iterator[None]:
     last bits (1e-11 px). That is harmless as a number but changes the calibration's content
     digest, so every downstream stage would rerun and training, which amplifies such
     differences, would give other figures for the same seed. One thread costs little here:
-    the calibrate stage took 20.5 and 21.1 s on bob's tiny take with it against 19 s before
-    (corner detection dominates).
+    corner detection dominates the stage's time (docs/experiments.md, section 7).
     """
     import cv2
 

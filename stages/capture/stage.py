@@ -1,6 +1,6 @@
 """Stage ``capture``: film the subject (virtual studio) or import a real capture folder.
 
-Output (TEAM.md ``capture`` contract)::
+Output (the ``capture`` contract, docs/design.md)::
 
     manifest.json                 subject, fps, width, height, cameras, bars, takes, frames[]
     frames/<cam>/<index:06d>.exr  received images labelled with their trigger index

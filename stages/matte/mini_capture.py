@@ -1,6 +1,6 @@
 """A small capture folder rendered by the virtual studio, for the matte tests and benchmark.
 
-It follows the ``capture`` / ``capture.truth`` contracts (TEAM.md) closely enough for the
+It follows the ``capture`` / ``capture.truth`` contracts (docs/design.md) closely enough for the
 matte stages: ``manifest.json``, ``frames/<cam>/<index:06d>.exr`` and, in the truth folder,
 ``mattes/<cam>/<index:06d>.png``. The light pattern is the studio's, ``F, O, O, F, ...``;
 optionally some frames show an empty studio (no person: backdrop and sensor noise only).

@@ -4,8 +4,8 @@ Dissimilarity of two bars = the angle between their directions seen from the hea
 The capture pattern ``F, O1, O2, F, O3, O4, ..., F, O31, O32`` repeats, so every pair of
 consecutive OLAT frames counts, whether adjacent in time (O1, O2) or separated by a
 full-on frame (O2, O3), and the cycle closes (O32 -> O1 of the next cycle). The order is
-therefore a Hamiltonian *cycle* over the bars, and the measure (METRICS.md, ``sequence``)
-is the mean and the minimum of its edge angles.
+therefore a Hamiltonian *cycle* over the bars, and the measure (the ``sequence`` metrics in
+docs/design.md) is the mean and the minimum of its edge angles.
 
 We solve it lexicographically: first the largest achievable minimum angle (a bottleneck
 travelling-salesman problem), then the largest sum of angles among the cycles whose every

@@ -4,10 +4,10 @@ Why threads work here: torch releases the GIL inside its kernels and autograd's 
 with one intra-op thread (``train.threads: 1``) a model's ops run on the thread that calls
 them. So ours and TRAvatar* train on a 2-core CPU in about the time of one, with the same
 numbers as one after another: each model has its own sampling generator, optimiser and
-checkpoint, and its ops do not depend on what the other thread does. Measured on bob's
-tiny capture (150 iterations each): 13.8 model iterations/s one after another, 27.1 side by
-side, parameters bit-identical. Processes would gain nothing over this and would have to
-copy the data and forward the stage's log, progress line and TensorBoard writer.
+checkpoint, and its ops do not depend on what the other thread does; the parameters come
+out bit-identical (timings: docs/experiments.md, section 5). Processes would gain nothing over
+this and would have to copy the data and forward the stage's log, progress line and
+TensorBoard writer.
 
 On a GPU the two models would share one device's kernels and memory, so the default stays
 one after another (``train.parallel_models: 1``).

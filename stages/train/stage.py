@@ -13,7 +13,7 @@ Output:
     table.md                         the paper's table (rows: splits; PSNR, MAE, SSIM, LPIPS per model)
     previews/<split>_<k>.png         ground truth | ours | TRAvatar*, sRGB
     tensorboard/                     loss terms and held-out PSNR
-    metrics.json                     see METRICS.md (train)
+    metrics.json                     the required train keys are listed in docs/design.md (metrics)
 
 The two models train one after another, or side by side in two threads of this process
 (``parallel_models: 2``, ``stages.train.side_by_side``), to the same weights either way.
@@ -93,9 +93,10 @@ class TrainParams(StageParams):
     weight_average: float = Field(0.0, ge=0, lt=1, description="Decay per iteration of an exponential moving "
                                   "average of the weights, evaluated and saved instead of the last iterate (0 = "
                                   "the last iterate, as the paper; 0.998 averages over roughly the last 500 "
-                                  "iterations). Both models alike. Measured on tiny: +0.1 dB on bob but -0.5 to "
-                                  "-1.2 dB for ours on alice, whose encoder and decoders still move together late "
-                                  "in training and no longer match once averaged apart (docs/tiny-accuracy.md).")
+                                  "iterations). Both models alike. Leave it at 0 unless you are experimenting: on the "
+                                  "tiny preset it cost ours on alice, whose encoder and decoders still move together "
+                                  "late in training and no longer match once averaged apart (docs/experiments.md, "
+                                  "section 1).")
     pho_weight: float = Field(1.0, ge=0, description="Weight of the photometric (MSE) loss.")
     geo_weight: float = Field(0.1, ge=0, description="Weight of the guide-mesh loss (MSE, cm^2).")
     vol_weight: float = Field(0.01, ge=0, description="Weight of MVP's primitive volume prior.")
@@ -119,9 +120,10 @@ class TrainParams(StageParams):
     threads: int = Field(0, ge=0, description="torch CPU threads (0 = torch's default).")
     device: str = Field("auto", description="'auto' (CUDA if present), 'cpu' or 'cuda'.")
     raymarch_kernel: RaymarchKernel = Field(
-        "auto", description="'fused': the C++ CPU raymarcher (avatar.raymarch_fused, built on first use; ~2x the "
-        "training iterations/s of 'torch' on the tiny head); 'torch': tensor ops (CPU or GPU); 'auto': fused on the "
-        "CPU where a C++ compiler builds it, else torch. The same images either way, up to float rounding.")
+        "auto", description="'fused': the C++ CPU raymarcher (avatar.raymarch_fused, built on first use, needs a C++ "
+        "compiler; several times the training iterations/s of 'torch' on the CPU, docs/experiments.md, section 4); "
+        "'torch': tensor ops (CPU or GPU); 'auto': fused on the CPU where a C++ compiler builds it, else torch with "
+        "a warning. The same images either way, up to float rounding. Set 'fused' to fail instead of falling back.")
     previews: int = Field(2, ge=0, description="Preview images written per split.")
     parallel_models: int = Field(1, ge=1, description="Models (ours, TRAvatar*) trained at the same time, each in its "
                                  "own thread of this process: 2 trains both side by side, in about the time of one "

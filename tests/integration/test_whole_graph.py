@@ -3,8 +3,9 @@
 Every stage runs for real (virtual studio, controller emulator, calibration, MediaPipe
 tracking, matting, training, relighting, evaluation, report) through the `pipeline`
 command, as a user runs it. Accuracy figures at this size are not meaningful; the test
-checks that the graph completes, that every stage reports the keys of METRICS.md, that a
-second run does nothing and that the report is written.
+checks that the graph completes, that every stage reports the metric keys that
+docs/design.md requires (``REQUIRED``), that a second run does nothing and that the report
+is written.
 """
 
 from __future__ import annotations
