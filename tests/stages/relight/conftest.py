@@ -57,18 +57,25 @@ def write_relight_inputs(root, expressions: int = 1) -> dict:
 
 
 def fail_on_call(monkeypatch, n: int):
-    """Make the ``n``-th ``HeadRenderer.render_lights`` call raise (a GPU failing mid-sequence);
-    returns the original method, to put back with ``monkeypatch.setattr`` when the test needs it."""
-    from stages.relight.render import HeadRenderer
+    """Make the ``n``-th frame render (``avatar.render.render`` as the relight worker calls it) raise (a GPU
+    failing mid-sequence); returns the original, to put back with ``restore_render`` when the test needs it."""
+    from stages.relight import render as relight_render
 
-    original = HeadRenderer.render_lights
+    original = relight_render.render
     calls = {"n": 0}
 
-    def flaky(self, *args, **kwargs):
+    def flaky(*args, **kwargs):
         calls["n"] += 1
         if calls["n"] == n:
             raise RuntimeError("GPU fell off the bus")
-        return original(self, *args, **kwargs)
+        return original(*args, **kwargs)
 
-    monkeypatch.setattr(HeadRenderer, "render_lights", flaky)
+    monkeypatch.setattr(relight_render, "render", flaky)
     return original
+
+
+def restore_render(monkeypatch, original) -> None:
+    """Undo ``fail_on_call``."""
+    from stages.relight import render as relight_render
+
+    monkeypatch.setattr(relight_render, "render", original)
