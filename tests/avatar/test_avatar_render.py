@@ -7,44 +7,25 @@ import numpy as np
 import pytest
 import torch
 
-from avatar.config import AvatarConfig
-from avatar.layout import build_layout
-from avatar.model import RelightableMVP
+from avatar.raymarch import raymarch
 from avatar.render import BasisLights, DirectionalLights, PointLights, Rays, decode, render
 from avatar.travatar import LightBasis, interpolated_rgb
-from avatar.raymarch import raymarch
 from scene.camera import Camera, look_at
 from scene.envmap import select_uniform, synthetic_sky
+from tests.stages.relight.conftest import tiny_model
 
 BASIS_DIRECTIONS = np.array([[0.0, 0.0, 1.0], [0.7, 0.0, 0.7], [-0.7, 0.0, 0.7], [0.0, 0.7, 0.7], [0.0, -0.7, 0.7]])
-
-
-def _head(light_basis: int = 0, seed: int = 0) -> tuple[RelightableMVP, np.ndarray]:
-    """A random 8x8-primitive, 4^3-voxel head on a sphere, with a visibly light-dependent appearance."""
-    import trimesh
-
-    torch.manual_seed(seed)
-    mesh = trimesh.creation.icosphere(subdivisions=2, radius=0.1)
-    verts, tris = np.asarray(mesh.vertices, np.float32), np.asarray(mesh.faces, np.int64)
-    config = AvatarConfig(prims_per_side=8, voxels_per_side=4, latent_dim=16, encoder_hidden=32,
-                          base_channels=16, rgb_channels=(16, 12), alpha_channels=(8, 4), geometry_channels=8,
-                          steps_per_ray=16, light_basis=light_basis)
-    model = RelightableMVP(config, build_layout(verts, tris, config.prims_per_side), num_bars=4)
-    with torch.no_grad():
-        for p in model.rgb_branch.parameters():
-            p.mul_(3.0)
-    return model.eval(), verts
 
 
 @pytest.fixture(scope="module")
 def ours():
     torch.set_num_threads(1)
-    return _head()
+    return tiny_model()
 
 
 @pytest.fixture(scope="module")
 def travatar():
-    return _head(light_basis=len(BASIS_DIRECTIONS), seed=1)
+    return tiny_model(seed=1, light_basis=len(BASIS_DIRECTIONS))
 
 
 def _camera(width: int = 16, height: int = 20) -> Camera:

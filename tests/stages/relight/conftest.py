@@ -19,13 +19,13 @@ def sphere_head(radius_m: float = 0.1):
     return np.asarray(mesh.vertices, np.float32), np.asarray(mesh.faces, np.int64)
 
 
-def tiny_model(seed: int = 0) -> tuple[RelightableMVP, np.ndarray]:
-    """A random 8x8-primitive, 4^3-voxel model and the mesh it is anchored on."""
+def tiny_model(seed: int = 0, light_basis: int = 0) -> tuple[RelightableMVP, np.ndarray]:
+    """A random 8x8-primitive, 4^3-voxel model and the mesh it is anchored on (``light_basis`` > 0: TRAvatar*'s)."""
     torch.manual_seed(seed)
     verts, tris = sphere_head()
     config = AvatarConfig(prims_per_side=8, voxels_per_side=4, latent_dim=16, encoder_hidden=32,
                           base_channels=16, rgb_channels=(16, 12), alpha_channels=(8, 4),
-                          geometry_channels=8, steps_per_ray=24)
+                          geometry_channels=8, steps_per_ray=24, light_basis=light_basis)
     layout = build_layout(verts, tris, config.prims_per_side)
     model = RelightableMVP(config, layout, num_bars=4)
     with torch.no_grad():  # a visibly non-trivial, light-dependent appearance
