@@ -65,6 +65,15 @@ def _table(x: ArrayLike | None, columns: int):
     return np.asarray(x, float).reshape(-1, columns)
 
 
+def _gains(x: ArrayLike | None):
+    """Per-light gains as [K]: a tensor stays a tensor (a view), anything else becomes a float32 array."""
+    if x is None:
+        return None
+    if isinstance(x, torch.Tensor):
+        return x.reshape(-1)
+    return np.asarray(x, np.float32).reshape(-1)
+
+
 def _check_rows(lights, table) -> None:
     """Every per-light table of ``lights`` has one row per light."""
     k = int(table.shape[0])
@@ -82,17 +91,18 @@ class PointLights:
         positions: [K, 3] head-space positions, metres.
         rgb: [K, 3] RGB intensities multiplying the network's unit light (a training bar at
             its own distance); None: unit white lights, each light's voxels summed as decoded.
-        intensity: [K] tensor or None: a gain per light applied inside the decoder
+        intensity: [K] or None: a gain per light applied inside the decoder
             (``RelightableMVP.decode_rgb``'s ``intensity``, e.g. the learnt bar intensities).
     """
 
     positions: ArrayLike
     rgb: ArrayLike | None = None
-    intensity: torch.Tensor | None = None
+    intensity: ArrayLike | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "positions", _table(self.positions, 3))
         object.__setattr__(self, "rgb", _table(self.rgb, 3))
+        object.__setattr__(self, "intensity", _gains(self.intensity))
         _check_rows(self, self.positions)
 
     def __len__(self) -> int:
@@ -142,12 +152,13 @@ class BasisLights:
 
     weights: ArrayLike
     rgb: ArrayLike | None = None
-    intensity: torch.Tensor | None = None
+    intensity: ArrayLike | None = None
 
     def __post_init__(self) -> None:
         w = self.weights
         object.__setattr__(self, "weights", w if isinstance(w, torch.Tensor) else np.asarray(w, float))
         object.__setattr__(self, "rgb", _table(self.rgb, 3))
+        object.__setattr__(self, "intensity", _gains(self.intensity))
         if self.weights.ndim != 2:
             raise ValueError(f"BasisLights: weights must be [K, L], got shape {tuple(self.weights.shape)}")
         _check_rows(self, self.weights)
@@ -227,7 +238,7 @@ def decode_lights(model: RelightableMVP, geometry: DecodedGeometry, cam_pos: tor
         lights = lights.as_points()
     device, intensity = cam_pos.device, lights.intensity
     if intensity is not None and not isinstance(intensity, torch.Tensor):
-        intensity = torch.as_tensor(np.asarray(intensity, np.float32).reshape(-1), device=device)
+        intensity = torch.as_tensor(intensity, device=device)
     if model.config.light_basis == 0:
         if not isinstance(lights, PointLights):
             raise ValueError("render: the relightable model (ours) takes point or directional lights, not BasisLights")
@@ -288,6 +299,8 @@ def render(model: RelightableMVP, mesh: ArrayLike | DecodedGeometry, camera, lig
         kernel: the raymarcher (``avatar.raymarch.raymarch``'s ``kernel``).
         method: ``"voxel_sum"`` (one raymarch) or ``"per_light"`` (the slow reference).
     """
+    if method not in ("voxel_sum", "per_light"):
+        raise ValueError(f"render: method '{method}' is not one of 'voxel_sum', 'per_light'")
     geometry = mesh if isinstance(mesh, DecodedGeometry) else decode(model, mesh)
     rays = camera if isinstance(camera, Rays) else Rays.of_camera(camera, _device(model))
     steps = int(steps or model.config.steps_per_ray)
@@ -297,8 +310,6 @@ def render(model: RelightableMVP, mesh: ArrayLike | DecodedGeometry, camera, lig
         rgb = summed_voxels(model, geometry, rays.position, lights, basis, light_batch)
         res = raymarch(geometry.primitives(rgb), rays_o, rays_d, steps, kernel=kernel)
         return _image(res.rgb[0] * scale, res.alpha[0], rays)
-    if method != "per_light":
-        raise ValueError(f"render: method '{method}' is not one of 'voxel_sum', 'per_light'")
     if isinstance(lights, DirectionalLights):
         lights = lights.as_points()
     total = torch.zeros(rays_o.shape[1], 3, dtype=torch.float64, device=rays_o.device)

@@ -80,6 +80,9 @@ def test_rgb_weights_scale_the_image_linearly(ours):
     unit = render(model, geometry, _camera(), PointLights(50.0 * directions[:1]))
     white = render(model, geometry, _camera(), PointLights(50.0 * directions[:1], np.ones((1, 3))), image_scale=0.5)
     assert float((white.rgb - 2.0 * unit.rgb).abs().max()) < 1e-6
+    # A decoder gain per light (the train stage's learnt bar intensities) scales the same way.
+    gained = render(model, geometry, _camera(), PointLights(50.0 * directions[:1], intensity=[2.0]))
+    assert torch.equal(gained.rgb, 2.0 * unit.rgb)
 
 
 def test_one_light_equals_decode_and_raymarch(ours):
