@@ -99,6 +99,12 @@ class DecodedGeometry:
             self.centre, self.rotation, self.half_extent, self.density, self.guide_vertices, self.feature)),
             keep=self.keep)
 
+    def repeat(self, k: int) -> "DecodedGeometry":
+        """Every item repeated ``k`` times in a row (copies: [B] -> [B * k], item-major), e.g. k basis lights per item."""
+        return DecodedGeometry(*(t.repeat_interleave(k, 0) for t in (
+            self.centre, self.rotation, self.half_extent, self.density, self.guide_vertices, self.feature)),
+            keep=self.keep)
+
     def primitives(self, rgb: torch.Tensor) -> Primitives:
         """Assemble raymarchable primitives with colours ``rgb`` [B, P, M, M, M, 3].
 

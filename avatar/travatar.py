@@ -63,12 +63,6 @@ class LightBasis:
         return out
 
 
-def _repeat(geometry: DecodedGeometry, k: int) -> DecodedGeometry:
-    return DecodedGeometry(*(t.repeat_interleave(k, 0) for t in (
-        geometry.centre, geometry.rotation, geometry.half_extent, geometry.density,
-        geometry.guide_vertices, geometry.feature)))
-
-
 def interpolated_rgb(model: RelightableMVP, geometry: DecodedGeometry, cam_pos: torch.Tensor,
                      weights: torch.Tensor, intensity: torch.Tensor | None = None) -> torch.Tensor:
     """RGB voxels [B, P, M, M, M, 3] for light weights [B, L] with at most 3 non-zeros: blend of one-hot decodes."""
@@ -77,7 +71,7 @@ def interpolated_rgb(model: RelightableMVP, geometry: DecodedGeometry, cam_pos: 
     k = top_i.shape[1]
     one_hot = torch.zeros(b * k, num_lights, dtype=weights.dtype, device=weights.device)
     one_hot[torch.arange(b * k), top_i.reshape(-1)] = 1.0
-    rgb = model.decode_rgb(_repeat(geometry, k), cam_pos.repeat_interleave(k, 0), light_weights=one_hot)
+    rgb = model.decode_rgb(geometry.repeat(k), cam_pos.repeat_interleave(k, 0), light_weights=one_hot)
     rgb = rgb.view(b, k, *rgb.shape[1:])
     blended = (rgb * top_w.view(b, k, 1, 1, 1, 1, 1)).sum(1)
     if intensity is not None:

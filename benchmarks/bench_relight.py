@@ -46,7 +46,7 @@ def _model(config):
 
 
 def _camera(width: int, height: int):
-    from stages.relight.sequences import ViewSpec
+    from scene.view import ViewSpec
 
     view = ViewSpec(width, height, 0.6, 30.0)
     return view.camera(view.front_eye())
@@ -67,32 +67,37 @@ def _clock(device: str) -> float:
 
 
 def time_fast_vs_naive(config, device: str, width: int, height: int, repeats: int = 2) -> dict:
+    from avatar.render import DirectionalLights, decode, render
     from scene.envmap import read_envmap, select_uniform
-    from stages.relight.render import HeadRenderer
 
     model, verts = _model(config)
-    renderer = HeadRenderer(model, config.steps_per_ray, light_batch=16 if device == "cpu" else 32, device=device)
-    geometry = renderer.geometry(verts)
+    model = model.to(device)
+    light_batch = 16 if device == "cpu" else 32
+    geometry = decode(model, verts)
     lights = select_uniform(read_envmap(ROOT / "assets/envmaps/blender-cc0/courtyard.exr"), 256)
-    pos, rgb = lights.positions_world(50.0), lights.irradiance_rgb / lights.irradiance_rgb.sum(0).max()
+    sky = DirectionalLights(lights.directions_world, lights.irradiance_rgb / lights.irradiance_rgb.sum(0).max(), 50.0)
     cam = _camera(width, height)
-    renderer.render_lights(geometry, cam, pos[:4], rgb[:4])  # warm-up
+
+    def frame(lights, method="voxel_sum"):
+        return render(model, geometry, cam, lights, light_batch=light_batch, method=method).numpy()[0]
+
+    frame(DirectionalLights(sky.directions[:4], sky.rgb[:4], 50.0))  # warm-up
     fast_s = []
     for _ in range(repeats):
         _sync(device)
         start = _clock(device)
-        fast = renderer.render_lights(geometry, cam, pos, rgb)
+        fast = frame(sky)
         _sync(device)
         fast_s.append(_clock(device) - start)
     _sync(device)
     start = _clock(device)
-    naive = renderer.render_lights_naive(geometry, cam, pos, rgb)
+    naive = frame(sky, "per_light")
     _sync(device)
     naive_s = _clock(device) - start
     return {"directions": len(lights), "image": f"{width}x{height}", "device": device,
             "envmap_seconds_per_frame": min(fast_s), "naive_envmap_seconds_per_frame": naive_s,
-            "speedup": naive_s / min(fast_s), "max_abs_diff": float(np.abs(fast.rgb - naive.rgb).max()),
-            "image_peak": float(fast.rgb.max())}
+            "speedup": naive_s / min(fast_s), "max_abs_diff": float(np.abs(fast - naive).max()),
+            "image_peak": float(fast.max())}
 
 
 def _studio_psnr(subject, frame, cam, envmap, lights, reference) -> float:
@@ -111,16 +116,18 @@ def adaptive_and_chart(width: int = 48, height: int = 64) -> dict:
     from hardware.studio.envmap_truth import _studio, frame_from_weights
     from hardware.studio.subject import make_subject
     from avatar.config import AvatarConfig
+    from avatar.render import DirectionalLights, decode, render
     from scene.envmap import BackMask, read_envmap, select_adaptive, select_uniform
     from scene.lights import DirectionalLight
-    from stages.relight.render import HeadRenderer
 
     subject = make_subject("alice", 1)
     frame = frame_from_weights(np.zeros(57))
     cam = _camera(width, height)
     model, verts = _model(AvatarConfig.tiny())
-    renderer = HeadRenderer(model, AvatarConfig.tiny().steps_per_ray, 16, "cpu")
-    geometry = renderer.geometry(verts)
+    geometry = decode(model, verts)
+
+    def ours(lights) -> None:
+        render(model, geometry, cam, DirectionalLights(lights.directions_world, lights.irradiance_rgb)).numpy()
     per_map, chart, render_seconds = {}, {}, {}
     for path in MAPS:
         env = read_envmap(path)
@@ -144,7 +151,7 @@ def adaptive_and_chart(width: int = 48, height: int = 64) -> dict:
         runs = []
         for _ in range(2):
             start = _clock("cpu")
-            renderer.render_lights(geometry, cam, adaptive.positions_world(), adaptive.irradiance_rgb)
+            ours(adaptive)
             runs.append(_clock("cpu") - start)
         entry["adaptive_render_seconds"] = min(runs)
         per_map[env.name] = entry
@@ -160,7 +167,7 @@ def adaptive_and_chart(width: int = 48, height: int = 64) -> dict:
                     runs = []
                     for _ in range(2):
                         start = _clock("cpu")
-                        renderer.render_lights(geometry, cam, lights.positions_world(), lights.irradiance_rgb)
+                        ours(lights)
                         runs.append(_clock("cpu") - start)
                     render_seconds[count] = min(runs)
                 centred = select_uniform(env, count, 0.0, mask, centroid=True)

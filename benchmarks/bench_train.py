@@ -19,10 +19,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from avatar import render as avatar_render
 from avatar.config import AvatarConfig
 from avatar.layout import layout_for
 from avatar.model import RelightableMVP
-from avatar.raymarch import raymarch
 from scene.camera import Camera, look_at
 from scene.face_rig import load_face_rig
 from scene.rig import default_rig
@@ -90,11 +90,8 @@ def _measure(config: AvatarConfig, width_px: int, batch: int, rays: int, iterati
     if render:
         with torch.no_grad():
             start = time.perf_counter()
-            mu, _ = model.encode(t.guide_vertices[:1])
-            geo = model.decode_geometry(mu)
-            rgb = model.decode_rgb(geo, t.cam_pos[:1, 0], t.light_pos[:1])
-            ro, rd = t.image_rays(0, 0)
-            raymarch(geo.primitives(rgb), ro[None], rd[None], config.steps_per_ray)
+            image_rays = avatar_render.Rays(*t.image_rays(0, 0), t.cam_pos[0, 0], t.height, t.width)
+            avatar_render.render(model, t.guide_vertices[:1], image_rays, avatar_render.PointLights(t.light_pos[:1]))
             if device.type == "cuda":
                 torch.cuda.synchronize()
             out["render_seconds_per_image"] = time.perf_counter() - start

@@ -120,11 +120,11 @@ def _threshold(params: EvaluateParams, reference_db: float) -> float:
 class _Sweeper:
     """Renders (mesh, true weights, light) with the model and the studio from every camera."""
 
-    def __init__(self, renderer, subject, cameras) -> None:
+    def __init__(self, model, steps: int, subject, cameras) -> None:
         from hardware.studio import RenderSettings, VirtualStudio
         from scene.rig import load_rig
 
-        self.renderer, self.cameras = renderer, cameras
+        self.model, self.steps, self.cameras = model, steps, cameras
         # One noiseless studio for the whole sweep (as hardware.studio.envmap_truth builds it),
         # so the subject's geometry is built once per expression, not once per light.
         self.studio = VirtualStudio(load_rig(), subject, RenderSettings(shot_noise_gain=0.0, read_noise=0.0))
@@ -134,22 +134,24 @@ class _Sweeper:
     def render(self, mesh_head: np.ndarray, truth_weights: np.ndarray, light_head: np.ndarray,
                geometry=None) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
         """Per camera: (model rgb, truth rgb, truth alpha), [H, W, 3] / [H, W] linear."""
+        from avatar.render import PointLights, decode, render
         from hardware.studio.envmap_truth import frame_from_weights
         from scene.lights import PointLight
 
         if geometry is None:
-            geometry = self.renderer.geometry(mesh_head)
+            geometry = decode(self.model, mesh_head)
         frame = frame_from_weights(truth_weights)
         out = []
         for camera in self.cameras:
             start = time.perf_counter()
-            pred = self.renderer.render_lights(geometry, camera, light_head[None], np.ones((1, 3)))
+            pred_rgb, _ = render(self.model, geometry, camera, PointLights(light_head[None], np.ones((1, 3))),
+                                 steps=self.steps).numpy()
             self.model_seconds += time.perf_counter() - start
             start = time.perf_counter()
             truth = self.studio.render_lights(frame, camera, [PointLight(np.asarray(light_head, float), np.ones(3))],
                                               noise=False)
             self.truth_seconds += time.perf_counter() - start
-            out.append((pred.rgb, truth.rgb, truth.alpha))
+            out.append((pred_rgb, truth.rgb, truth.alpha))
         return out
 
 
@@ -166,9 +168,9 @@ def score_sweep(renders: list[list[tuple[np.ndarray, np.ndarray, np.ndarray]]], 
 
 def run(ctx: StageContext) -> None:
     from avatar.io import load_trained
+    from avatar.render import decode
     from hardware.studio.envmap_truth import subject_from_truth
-    from stages.relight.render import HeadRenderer
-    from stages.relight.sequences import ViewSpec
+    from scene.view import ViewSpec
 
     params: EvaluateParams = ctx.params
     capture, truth, train, track = (ctx.input(n) for n in ("capture", "capture.truth", "train", "track"))
@@ -205,13 +207,12 @@ def run(ctx: StageContext) -> None:
         a = math.radians(az)
         cameras.append(view.camera(centre + params.camera_distance_m * np.array([math.sin(a), 0.0, math.cos(a)]),
                                    name=f"eval_az{az:g}"))
-    renderer = HeadRenderer(model, params.steps_per_ray or model.config.steps_per_ray)
-    sweeper = _Sweeper(renderer, subject, cameras)
+    sweeper = _Sweeper(model, params.steps_per_ray or model.config.steps_per_ray, subject, cameras)
 
     # Light orbit.
     planes = ("horizontal", "vertical") if params.vertical_orbit else ("horizontal",)
     orbit_weights = np.asarray(truth_frames["weights"][truth_row[orbit_frame]], np.float32)
-    geometry = renderer.geometry(orbit_mesh)
+    geometry = decode(model, orbit_mesh)
     samples: dict[str, list[dict]] = {"light_orbit": [], "expression_scale": []}
     orbits, strip_truth, strip_pred = {}, [], []
     with ctx.progress(params.orbit_points * len(planes), "orbit lights") as progress:

@@ -74,10 +74,10 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _render(args: argparse.Namespace, log: logging.Logger) -> int:
+    from pipeline.executors import LocalExecutor
     from pipeline.project import find_project_root
     from pipeline.stage import StageContext
     from pipeline.progress import progress_factory
-    from pipeline.testing import SerialExecutor
     from pipeline.workspace import Workspace, workspace_root
     from stages.evaluate.limits import workspace_light_warnings
     from stages.relight.sequences import read_light_position
@@ -118,7 +118,7 @@ def _render(args: argparse.Namespace, log: logging.Logger) -> int:
     (out / ".cache").mkdir(exist_ok=True)
     ctx = StageContext(stage="render", subject=args.subject, params=params, inputs=inputs, out=out, extra_outputs={},
                        log=log, metrics={}, cache_dir=out / ".cache", shared_cache_dir=out / ".cache",
-                       executor=SerialExecutor(), progress_factory=progress_factory("render", log))
+                       executor=LocalExecutor(workers=1), progress_factory=progress_factory("render", log))
     with warnings.catch_warnings():
         warnings.simplefilter("always")
         logging.captureWarnings(True)

@@ -17,8 +17,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from scene.camera import Camera, look_at
+from scene.camera import Camera
 from scene.envmap import AdaptiveParams, BackMask, EnvMap, select_lights
+from scene.view import ViewSpec  # the sequences' default camera (re-exported: seq.ViewSpec)
 
 
 class LightRangeWarning(UserWarning):
@@ -42,28 +43,6 @@ class FrameSpec:
     light_rgb: np.ndarray
     mesh_index: int = 0
     info: dict = field(default_factory=dict)
-
-
-@dataclass(frozen=True)
-class ViewSpec:
-    """The default camera: ``distance_m`` in front of the head (+z), ``fov_deg`` horizontal."""
-
-    width_px: int = 96
-    height_px: int = 128
-    distance_m: float = 0.9
-    fov_deg: float = 24.0
-    target_head: tuple[float, float, float] = (0.0, 0.0, 0.0)
-
-    def focal_px(self) -> float:
-        return 0.5 * self.width_px / math.tan(math.radians(self.fov_deg) / 2)
-
-    def camera(self, eye: np.ndarray, focal_px: float | None = None, name: str = "relight") -> Camera:
-        f = self.focal_px() if focal_px is None else focal_px
-        cam = Camera(name, self.width_px, self.height_px, f, f, self.width_px / 2 - 0.5, self.height_px / 2 - 0.5)
-        return cam.with_pose(look_at(np.asarray(eye, float), np.asarray(self.target_head, float)))
-
-    def front_eye(self) -> np.ndarray:
-        return np.asarray(self.target_head, float) + np.array([0.0, 0.0, self.distance_m])
 
 
 def warn_if_behind(position: np.ndarray, centre: np.ndarray, mask: BackMask, what: str) -> bool:

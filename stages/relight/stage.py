@@ -38,6 +38,7 @@ import numpy as np
 import torch
 from pydantic import Field
 
+from avatar.render import PointLights, RenderMethod, decode, render
 from pipeline.errors import ConfigError, InputError
 from pipeline.hashing import hash_path
 from pipeline.itemcache import stage_item_cache
@@ -45,7 +46,7 @@ from pipeline.stage import Stage, StageContext, StageParams
 from scene.envmap import AdaptiveParams, BackMask, EnvMapError, EnvMapWarning, read_envmap
 from stages.relight import sequences as seq
 from stages.relight.outputs import SequenceWriter
-from stages.relight.render import FrameItem, HeadRenderer, frame_key, render_frame
+from stages.relight.render import FrameItem, frame_key, render_frame
 
 # What a rendered frame depends on besides stages.relight.render itself (its cache entries' code version).
 RENDER_CODE = ("avatar", "scene.camera")
@@ -153,7 +154,7 @@ class FrameSource:
     meshes_path: Path  # the stage's own meshes.npz ("default", "expressions")
     steps: int
     light_batch: int
-    rgb_scale: float
+    image_scale: float
     device: str
 
     def items(self, frames: list[seq.FrameSpec], meshes: np.ndarray, mesh_array: str) -> list[FrameItem]:
@@ -170,14 +171,15 @@ class FrameSource:
                 model_dir=str(self.model_dir), model_digest=self.model_digest, meshes_path=str(self.meshes_path),
                 mesh_array=mesh_array, mesh_index=spec.mesh_index, mesh_digest=digests[spec.mesh_index],
                 camera=spec.camera, light_pos=np.asarray(spec.light_pos), light_rgb=np.asarray(spec.light_rgb),
-                steps=self.steps, light_batch=self.light_batch, rgb_scale=self.rgb_scale, device=self.device))
+                steps=self.steps, light_batch=self.light_batch, image_scale=self.image_scale,
+                device=self.device))
         return items
 
 
 def _timed(render, geometry, spec: seq.FrameSpec) -> float:
-    """Seconds of one ``render(geometry, camera, light_pos, light_rgb)`` (CUDA work waited for)."""
+    """Seconds of one ``render(geometry, spec)`` (CUDA work waited for)."""
     start = time.perf_counter()
-    render(geometry, spec.camera, spec.light_pos, spec.light_rgb)
+    render(geometry, spec)
     if torch.cuda.is_available():
         torch.cuda.synchronize()
     return time.perf_counter() - start
@@ -224,11 +226,14 @@ def run(ctx: StageContext) -> None:
     model, meta, default_mesh, expressions = load_inputs(dict(ctx.inputs), params, device)
     steps = params.steps_per_ray or model.config.steps_per_ray
     # The network learnt normalised images; EXR outputs are in the capture's linear units.
-    rgb_scale = 1.0 / float(meta.get("image_scale", 1.0))
-    renderer = HeadRenderer(model, steps, params.light_batch, device, rgb_scale=rgb_scale)
+    image_scale = float(meta.get("image_scale", 1.0))
     model_dir = ctx.inputs["train"] / "models" / "ours"
     source = FrameSource(model_dir, hash_path(model_dir), ctx.out / "meshes.npz", steps, params.light_batch,
-                         rgb_scale, device)
+                         image_scale, device)
+
+    def render_spec(geometry, spec: seq.FrameSpec, method: RenderMethod = "voxel_sum"):
+        return render(model, geometry, spec.camera, PointLights(spec.light_pos, spec.light_rgb), steps=steps,
+                      image_scale=image_scale, light_batch=params.light_batch, method=method).numpy()
     view = seq.ViewSpec(params.width_px, params.height_px, params.distance_m, params.fov_deg,
                         tuple(float(v) for v in default_mesh.mean(0)))
     mask = BackMask(cone_half_angle_deg=params.back_cone_deg)
@@ -260,16 +265,16 @@ def run(ctx: StageContext) -> None:
             raise InputError(f"relight.envmaps: {err}") from err
         envmap_seconds += render_sequence(ctx, source, f"envmap_{envmap.name}", frames, default, "default", manifest)
         directions += [f.info["directions"] for f in frames]
-        geometry = renderer.geometry(default_mesh)
+        geometry = decode(model, default_mesh)
         for spec in frames[:max(0, params.naive_timing_frames - len(naive_seconds))]:
             # Both paths timed here, one after the other in this one process: the workers'
             # own timings overlap each other (and any other job), so they measure contention.
-            fast = renderer.render_lights(geometry, spec.camera, spec.light_pos, spec.light_rgb)  # also a warm-up
-            fast_seconds.append(_timed(renderer.render_lights, geometry, spec))
+            fast_rgb, _ = render_spec(geometry, spec)  # also a warm-up
+            fast_seconds.append(_timed(render_spec, geometry, spec))
             start = time.perf_counter()
-            naive = renderer.render_lights_naive(geometry, spec.camera, spec.light_pos, spec.light_rgb)
+            naive_rgb, _ = render_spec(geometry, spec, "per_light")
             naive_seconds.append(time.perf_counter() - start)
-            max_diff = max(max_diff, float(np.abs(fast.rgb - naive.rgb).max()))
+            max_diff = max(max_diff, float(np.abs(fast_rgb - naive_rgb).max()))
 
     key_pos, key_rgb = seq.key_light(view)
     if params.orbit_radius_m > 0 and params.orbit_frames > 0:

@@ -36,7 +36,8 @@ from torch import nn
 
 from avatar.model import RelightableMVP, kl_divergence
 from avatar.raymarch import RaymarchKernel, raymarch
-from avatar.travatar import LightBasis, interpolated_rgb
+from avatar.render import BasisLights, PointLights, Rays, decode, decode_lights, render
+from avatar.travatar import LightBasis
 
 
 class TrainingStopped(RuntimeError):
@@ -148,7 +149,7 @@ class TrainState:
 
 
 class Renderer:
-    """Decodes and raymarches one model kind for given frames, cameras and lights."""
+    """One model kind's lights for the training loop's decode, and full images through ``avatar.render``."""
 
     def __init__(self, model: RelightableMVP, kind: str, basis: LightBasis | None, basis_bars: list[int],
                  kernel: RaymarchKernel = "auto") -> None:
@@ -159,20 +160,22 @@ class Renderer:
         self.model, self.kind, self.basis, self.kernel = model, kind, basis, kernel
         self.basis_index = {b: i for i, b in enumerate(basis_bars)}
 
-    def rgb(self, geometry, cam_pos: torch.Tensor, light_pos: torch.Tensor, bar: torch.Tensor,
-            intensity: torch.Tensor) -> torch.Tensor:
-        """RGB voxels for a batch: ours from the light position, TRAvatar* from its basis."""
+    def lights(self, light_pos: torch.Tensor, bar: torch.Tensor, intensity: torch.Tensor) -> PointLights | BasisLights:
+        """One light per batch item: ours at its position; TRAvatar* one-hot over its basis when every bar is
+        a training bar, else the positions (interpolated over the basis)."""
         if self.kind == "ours":
-            return self.model.decode_rgb(geometry, cam_pos, light_pos, intensity=intensity)
+            return PointLights(light_pos, intensity=intensity)
         bars = bar.tolist()
         if all(b in self.basis_index for b in bars):
             idx = np.array([self.basis_index[b] for b in bars])
-            w = self.basis.one_hot(idx)
-            weights = torch.as_tensor(w, dtype=cam_pos.dtype, device=cam_pos.device)
-            return self.model.decode_rgb(geometry, cam_pos, light_weights=weights, intensity=intensity)
-        w = self.basis.weights(light_pos.detach().cpu().numpy())
-        weights = torch.as_tensor(w, dtype=cam_pos.dtype, device=cam_pos.device)
-        return interpolated_rgb(self.model, geometry, cam_pos, weights, intensity)
+            return BasisLights(self.basis.one_hot(idx), intensity=intensity)
+        return PointLights(light_pos, intensity=intensity)
+
+    def rgb(self, geometry, cam_pos: torch.Tensor, light_pos: torch.Tensor, bar: torch.Tensor,
+            intensity: torch.Tensor) -> torch.Tensor:
+        """RGB voxels for a batch: ours from the light position, TRAvatar* from its basis."""
+        return decode_lights(self.model, geometry, cam_pos, self.lights(light_pos, bar, intensity),
+                             self.basis)
 
     @torch.no_grad()
     def render_images(self, t: TrainTensors, pairs: list[tuple[int, int]], light_pos: torch.Tensor | None = None,
@@ -180,19 +183,18 @@ class Renderer:
         """Full images [K, H, W, 3] and opacity [K, H, W] for (frame, camera) pairs; deterministic (z = mu)."""
         rgbs, alphas = [], []
         for f, c in pairs:
-            mu, _ = self.model.encode(t.guide_vertices[f:f + 1])
-            geo = self.model.decode_geometry(mu)
+            geo = decode(self.model, t.guide_vertices[f:f + 1])
             lp = t.light_pos[f:f + 1] if light_pos is None else light_pos[None]
             b = t.bar[f:f + 1]
             # Bars never seen in training (held-out lights) have no learnt intensity: use 1.
             known = torch.as_tensor([int(x) in self.basis_index for x in b.tolist()], device=b.device)
             b_eff = torch.where(known, b, torch.full_like(b, -1))
             intensity = self.model.bar_intensity(b_eff)
-            rgb = self.rgb(geo, t.cam_pos[f, c][None], lp, b_eff, intensity)
-            res = raymarch(geo.primitives(rgb), *[x[None] for x in t.image_rays(f, c)],
-                           self.model.config.steps_per_ray, kernel=self.kernel)
-            rgbs.append(res.rgb.view(t.height, t.width, 3))
-            alphas.append(res.alpha.view(t.height, t.width))
+            rays = Rays(*t.image_rays(f, c), t.cam_pos[f, c], t.height, t.width)
+            image = render(self.model, geo, rays, self.lights(lp, b_eff, intensity),
+                           basis=self.basis, kernel=self.kernel)
+            rgbs.append(image.rgb)
+            alphas.append(image.alpha)
         return torch.stack(rgbs), torch.stack(alphas)
 
 

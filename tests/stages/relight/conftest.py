@@ -19,13 +19,13 @@ def sphere_head(radius_m: float = 0.1):
     return np.asarray(mesh.vertices, np.float32), np.asarray(mesh.faces, np.int64)
 
 
-def tiny_model(seed: int = 0) -> tuple[RelightableMVP, np.ndarray]:
-    """A random 8x8-primitive, 4^3-voxel model and the mesh it is anchored on."""
+def tiny_model(seed: int = 0, light_basis: int = 0) -> tuple[RelightableMVP, np.ndarray]:
+    """A random 8x8-primitive, 4^3-voxel model and the mesh it is anchored on (``light_basis`` > 0: TRAvatar*'s)."""
     torch.manual_seed(seed)
     verts, tris = sphere_head()
     config = AvatarConfig(prims_per_side=8, voxels_per_side=4, latent_dim=16, encoder_hidden=32,
                           base_channels=16, rgb_channels=(16, 12), alpha_channels=(8, 4),
-                          geometry_channels=8, steps_per_ray=24)
+                          geometry_channels=8, steps_per_ray=24, light_basis=light_basis)
     layout = build_layout(verts, tris, config.prims_per_side)
     model = RelightableMVP(config, layout, num_bars=4)
     with torch.no_grad():  # a visibly non-trivial, light-dependent appearance
@@ -57,18 +57,25 @@ def write_relight_inputs(root, expressions: int = 1) -> dict:
 
 
 def fail_on_call(monkeypatch, n: int):
-    """Make the ``n``-th ``HeadRenderer.render_lights`` call raise (a GPU failing mid-sequence);
-    returns the original method, to put back with ``monkeypatch.setattr`` when the test needs it."""
-    from stages.relight.render import HeadRenderer
+    """Make the ``n``-th frame render (``avatar.render.render`` as the relight worker calls it) raise (a GPU
+    failing mid-sequence); returns the original, to put back with ``restore_render`` when the test needs it."""
+    from stages.relight import render as relight_render
 
-    original = HeadRenderer.render_lights
+    original = relight_render.render
     calls = {"n": 0}
 
-    def flaky(self, *args, **kwargs):
+    def flaky(*args, **kwargs):
         calls["n"] += 1
         if calls["n"] == n:
             raise RuntimeError("GPU fell off the bus")
-        return original(self, *args, **kwargs)
+        return original(*args, **kwargs)
 
-    monkeypatch.setattr(HeadRenderer, "render_lights", flaky)
+    monkeypatch.setattr(relight_render, "render", flaky)
     return original
+
+
+def restore_render(monkeypatch, original) -> None:
+    """Undo ``fail_on_call``."""
+    from stages.relight import render as relight_render
+
+    monkeypatch.setattr(relight_render, "render", original)

@@ -10,7 +10,7 @@ import pytest
 
 from pipeline.testing import run_stage_for_test
 from stages.relight.stage import STAGE
-from tests.stages.relight.conftest import fail_on_call, write_relight_inputs
+from tests.stages.relight.conftest import fail_on_call, restore_render, write_relight_inputs
 
 ONLY = {"envmaps": ["blender-cc0/studio.exr"], "directions": 16, "orbit_frames": 0, "turntable_frames": 0,
         "dolly_zoom_frames": 0, "naive_timing_frames": 0, "width_px": 12, "height_px": 16, "steps_per_ray": 8}
@@ -47,13 +47,11 @@ def test_more_frames_render_only_the_new_ones_and_equal_an_uncached_run(inputs, 
 
 
 def test_frames_rendered_before_a_failure_are_reused(inputs, tmp_path, monkeypatch):
-    from stages.relight.render import HeadRenderer
-
     params = {**ONLY, "envmaps": [], "point_lights": [(0.4, 0.2, 1.0), (-0.5, 0.1, 0.9), (0.0, 0.6, 0.8),
                                                       (0.3, -0.2, 1.1)]}
     original = fail_on_call(monkeypatch, 3)
     with pytest.raises(RuntimeError, match="fell off"):
         _run(inputs, tmp_path, "a", params)
-    monkeypatch.setattr(HeadRenderer, "render_lights", original)
+    restore_render(monkeypatch, original)
     _, rerun = _run(inputs, tmp_path, "b", params, share_cache_of="a")
     assert (rerun["frames_reused"], rerun["frames_computed"]) == (2, 2)
