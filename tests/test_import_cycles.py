@@ -85,3 +85,38 @@ def test_no_import_cycles_between_project_files() -> None:
     cycles = [sorted(graph.relpath(p) for p in comp) for comp in strongly_connected(edges)]
     assert cycles == [], "import cycles (break each by moving what both need into a module of its own): " + \
         "; ".join(" <-> ".join(cycle) for cycle in cycles)
+
+
+def _package(rel: str) -> str:
+    """The package a file belongs to: ``stages.<name>`` and ``hardware.<name>`` count on their own."""
+    parts = rel.split("/")
+    if parts[0] in ("stages", "hardware") and len(parts) > 2:
+        return f"{parts[0]}.{parts[1]}"
+    return parts[0]
+
+
+def _package_edges(graph: SourceGraph) -> dict[str, set[str]]:
+    edges: dict[str, set[str]] = {}
+    for path in _project_files(graph):
+        source = _package(graph.relpath(path))
+        for target in graph.imported_files(path):
+            other = _package(graph.relpath(target))
+            if other != source:
+                edges.setdefault(source, set()).add(other)
+    return edges
+
+
+def test_no_import_cycles_between_packages() -> None:
+    """Each stage package (``stages.relight``, ``stages.evaluate``, ...) and each top-level package
+    depends on others in one direction only."""
+    edges = _package_edges(SourceGraph(REPO))
+    as_paths = {Path(a): [Path(b) for b in sorted(bs)] for a, bs in edges.items()}
+    cycles = [sorted(str(p) for p in comp) for comp in strongly_connected(as_paths)]
+    assert cycles == [], "package cycles: " + "; ".join(" <-> ".join(c) for c in cycles)
+
+
+def test_the_orchestrator_and_the_shared_vocabulary_import_no_stage() -> None:
+    edges = _package_edges(SourceGraph(REPO))
+    assert edges.get("pipeline", set()) == set(), "pipeline/ must know nothing of faces or stages"
+    assert edges.get("scene", set()) == set()
+    assert not any(dep.startswith("stages") for dep in edges.get("avatar", set()) | edges.get("hardware.studio", set()))
