@@ -141,7 +141,7 @@ def _virtual_capture(ctx: StageContext, params: CaptureParams) -> dict:
     from hardware.studio import RenderSettings, make_performance, make_subject, scan_session
     from pipeline.itemcache import stage_item_cache
     from stages.capture.placement import label_and_place
-    from stages.capture.virtual import RENDER_CODE, RenderTask, place_pulse, pulse_key, render_task
+    from stages.capture.virtual import RenderTask, place_pulse, pulse_key, render_task
 
     rig = params.rig
     seq_path = ctx.input("sequence") / "sequence.json"
@@ -193,7 +193,7 @@ def _virtual_capture(ctx: StageContext, params: CaptureParams) -> dict:
                  len(params.controller_missed_pulses))
     render_start = time.perf_counter()
     # One cache entry per pulse: frames added to a take render alone, the rest come from the cache.
-    cache = stage_item_cache(ctx, RENDER_CODE)
+    cache = stage_item_cache(ctx)
     results = cache.map(ctx.executor, render_task, tasks, pulse_key, desc="frames",
                         consume=lambda k, rendered: place_pulse(rendered, arrivals_of[k], ctx.out / "_received",
                                                                 truth / "mattes", cam_names))
@@ -269,7 +269,7 @@ def _calibration_takes(ctx: StageContext, params: CaptureParams, cameras, truth:
                                                    MirrorSpheresConfig, TakeWriter, plan_calibration_takes,
                                                    render_take_item, write_take_specs)
     from pipeline.itemcache import stage_item_cache
-    from stages.capture.virtual import CALIBRATION_CODE, calibration_item_key
+    from stages.capture.virtual import calibration_item_key
 
     rig = params.rig
     try:
@@ -292,7 +292,7 @@ def _calibration_takes(ctx: StageContext, params: CaptureParams, cameras, truth:
     write_take_specs(plan, ctx.out, truth)
     writer = TakeWriter(ctx.out / "calib")
     # One entry per camera and take: a rerun (more frames, another performance) renders none of them again.
-    cache = stage_item_cache(ctx, CALIBRATION_CODE)
+    cache = stage_item_cache(ctx)
     cache.map(ctx.executor, render_take_item, plan.items, calibration_item_key, desc="calibration takes",
               consume=writer.write)
     writer.finish()

@@ -34,12 +34,6 @@ from scene.colour import luminance
 from scene.image_io import write_exr, write_png16
 from scene.rig import RigConfig
 
-# What a rendered pulse depends on besides this module (its cache entries' code version).
-RENDER_CODE = ("scene.camera", "scene.rig", "scene.lights", "scene.face_rig", "scene.image_io", "scene.colour",
-               "hardware.studio.renderer", "hardware.studio.subject")
-
-# What a calibration take item depends on besides its own module (hardware.studio.calibration_takes).
-CALIBRATION_CODE = ("scene.camera", "scene.image_io")
 
 _STUDIO_CACHE: dict[tuple, VirtualStudio] = {}
 

@@ -320,8 +320,7 @@ def run(ctx: StageContext) -> None:
         written[cam][index] = path
         return float(result["seconds"])
 
-    cache = stage_item_cache(ctx, code=("stages.matte.inputs", "stages.matte.modnet", "stages.matte.baseline",
-                                        "stages.matte.model_cache", "scene.image_io", "scene.colour"))
+    cache = stage_item_cache(ctx)
     start = time.perf_counter()
     item_seconds = cache.map(ctx.executor, matte_item, [job[2] for job in jobs], matte_item_key, desc="images",
                              gpu=device.startswith("cuda"), consume=write)

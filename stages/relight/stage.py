@@ -48,8 +48,6 @@ from stages.relight import sequences as seq
 from stages.relight.outputs import SequenceWriter
 from stages.relight.render import FrameItem, frame_key, render_frame
 
-# What a rendered frame depends on besides stages.relight.render itself (its cache entries' code version).
-RENDER_CODE = ("avatar", "scene.camera")
 
 ASSETS = Path(__file__).resolve().parents[2] / "assets" / "envmaps"
 DEFAULT_ENVMAPS = ("blender-cc0/courtyard.exr", "blender-cc0/studio.exr", "blender-cc0/sunrise.exr")
@@ -197,7 +195,7 @@ def render_sequence(ctx: StageContext, source: FrameSource, name: str, frames: l
     writer = SequenceWriter(ctx.out / name, name, ctx.params.fps, ctx.log)
     seconds, records = [], []
     manifest[name] = records
-    cache = stage_item_cache(ctx, code=RENDER_CODE)
+    cache = stage_item_cache(ctx)
 
     def write(i: int, result: dict) -> None:
         spec = frames[i]
