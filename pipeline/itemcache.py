@@ -46,6 +46,7 @@ import numpy as np
 from pipeline.codedigest import modules_code_version
 from pipeline.errors import PipelineError
 from pipeline.hashing import hash_file
+from pipeline.workspace import write_bytes_atomic
 
 T = TypeVar("T")
 R = TypeVar("R")
@@ -136,10 +137,7 @@ def write_entry(path: Path, result: Any) -> None:
                             f"results must be JSON values and numpy arrays") from None
     buffer = io.BytesIO()
     np.savez(buffer, __json__=np.frombuffer(json.dumps(structure).encode("utf-8"), np.uint8), **arrays)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f"{path.name}.tmp{os.getpid()}")
-    tmp.write_bytes(buffer.getvalue())
-    os.replace(tmp, path)
+    write_bytes_atomic(path, buffer.getvalue())
 
 
 @dataclass(frozen=True)

@@ -55,9 +55,9 @@ from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
-import torch
 from pydantic import Field
 
+from pipeline.devices import DeviceChoice, resolve_device
 from pipeline.errors import InputError
 from pipeline.stage import Stage, StageContext, StageParams
 from stages.matte.baseline import BaselineConfig
@@ -81,7 +81,7 @@ class MatteParams(StageParams):
     baseline: BaselineConfig = Field(BaselineConfig(), description="The classical matte (method 'baseline').")
     gate_low: float = Field(0.3, ge=0, lt=1, description="Semantic gate: matte forced to 0 where the dilated semantic foreground is below this (0 = no gate).")
     gate_high: float = Field(0.6, gt=0, le=1, description="Semantic gate: matte kept as is where the dilated semantic foreground is above this.")
-    device: Literal["auto", "cpu", "cuda"] = Field("auto", description="Torch device; 'auto' uses CUDA when present.")
+    device: DeviceChoice = Field("auto", description="Torch device; 'auto' uses CUDA when present.")
     contact_sheet_frames: int = Field(4, ge=1, description="Frames (rows) shown in the contact sheet.")
     statistics_frames: int | None = Field(
         None, ge=1, description="Only frames with index below this set the cameras' exposure references and "
@@ -93,12 +93,6 @@ class MatteParams(StageParams):
 
 # The modules whose code determines the matting network's trained weights (with all they import).
 TRAINING_MODULES = ("stages.matte.training", "stages.matte.studio_data")
-
-
-def _device(params: MatteParams) -> str:
-    if params.device == "auto":
-        return "cuda" if torch.cuda.is_available() else "cpu"
-    return params.device
 
 
 def _read_manifest(capture: Path) -> dict[str, Any]:
@@ -286,7 +280,7 @@ def run(ctx: StageContext) -> None:
         torch.set_num_threads(params.threads)
     capture = ctx.input("capture")
     manifest = _read_manifest(capture)
-    device = _device(params)
+    device = resolve_device(params.device, "matte.device")
     cameras = {cam: CameraInputs(manifest, capture, cam, params.train.inputs, params.statistics_frames)
                for cam in manifest["cameras"]}
     record: dict[str, Any] = {"method": params.method, "device": device}

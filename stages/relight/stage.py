@@ -39,6 +39,7 @@ import torch
 from pydantic import Field
 
 from avatar.render import PointLights, RenderMethod, decode, render
+from pipeline.devices import DeviceChoice, resolve_device
 from pipeline.errors import ConfigError, InputError
 from pipeline.hashing import hash_path
 from pipeline.itemcache import stage_item_cache
@@ -84,7 +85,7 @@ class RelightParams(StageParams):
     light_batch: int = Field(16, ge=1, description="Lights decoded per batch in the voxel-space sum.")
     steps_per_ray: int = Field(0, ge=0, description="Raymarch steps per ray (0 = the model's own setting).")
     naive_timing_frames: int = Field(1, ge=0, description="Envmap frames (the first ones, over all maps) timed in this process with the fast and the naive path (timing and agreement check); 0 = report the workers' timings.")
-    device: str = Field("auto", description="'auto' (CUDA if present), 'cpu' or 'cuda'.")
+    device: DeviceChoice = Field("auto", description="'auto' (CUDA if present), 'cpu' or 'cuda'.")
 
 
 def resolve_envmap(name: str) -> Path:
@@ -97,14 +98,6 @@ def _external(params: RelightParams) -> list[Path]:
     files = [resolve_envmap(m) for m in params.envmaps]
     files += [Path(p) for p in (params.expressions_csv, params.expressions_obj_dir) if p]
     return files
-
-
-def _device(name: str) -> str:
-    if name == "auto":
-        return "cuda" if torch.cuda.is_available() else "cpu"
-    if name == "cuda" and not torch.cuda.is_available():
-        raise ConfigError("relight.device: 'cuda' asked for but no CUDA device is available; use 'auto' or 'cpu'")
-    return name
 
 
 def load_inputs(ctx_inputs: dict[str, Path], params: RelightParams, device: str):
@@ -220,7 +213,7 @@ def run(ctx: StageContext) -> None:
     params: RelightParams = ctx.params
     if params.light_method not in ("uniform", "adaptive"):
         raise ConfigError(f"relight.light_method: '{params.light_method}' is not one of 'uniform', 'adaptive'")
-    device = _device(params.device)
+    device = resolve_device(params.device, "relight.device")
     model, meta, default_mesh, expressions = load_inputs(dict(ctx.inputs), params, device)
     steps = params.steps_per_ray or model.config.steps_per_ray
     # The network learnt normalised images; EXR outputs are in the capture's linear units.

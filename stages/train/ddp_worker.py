@@ -22,10 +22,11 @@ from pathlib import Path
 import torch
 import torch.distributed as dist
 
+from pipeline.devices import resolve_device
 from pipeline.executors import LocalExecutor
 from pipeline.progress import SilentProgress, progress_factory
 from pipeline.stage import StageContext
-from stages.train.stage import TrainParams, _device, train
+from stages.train.stage import TrainParams, train
 
 
 
@@ -36,7 +37,7 @@ def main(argv: list[str] | None = None) -> int:
     rank, world = int(os.environ["RANK"]), int(os.environ["WORLD_SIZE"])
     local_rank = int(os.environ.get("LOCAL_RANK", rank))
     params = TrainParams(**job["params"])
-    device = _device(params.device)
+    device = torch.device(resolve_device(params.device, "train.device"))
     if device.type == "cuda":
         device = torch.device("cuda", local_rank)
         torch.cuda.set_device(device)

@@ -47,6 +47,7 @@ from avatar.model import RelightableMVP, count_parameters
 from avatar.raymarch import RaymarchKernel, resolve_kernel
 from avatar.raymarch_fused import FusedKernelUnavailable
 from avatar.travatar import LightBasis
+from pipeline.devices import DeviceChoice, resolve_device
 from pipeline.codedigest import modules_code_version
 from pipeline.errors import ConfigError, InputError
 from pipeline.stage import Stage, StageContext, StageParams
@@ -118,7 +119,7 @@ class TrainParams(StageParams):
     spike_factor: float = Field(10.0, gt=1, description="A loss above this multiple of its running mean rolls back.")
     seed: int = Field(0, description="Seed of initialisation and sampling.")
     threads: int = Field(0, ge=0, description="torch CPU threads (0 = torch's default).")
-    device: str = Field("auto", description="'auto' (CUDA if present), 'cpu' or 'cuda'.")
+    device: DeviceChoice = Field("auto", description="'auto' (CUDA if present), 'cpu' or 'cuda'.")
     raymarch_kernel: RaymarchKernel = Field(
         "auto", description="'fused': the C++ CPU raymarcher (avatar.raymarch_fused, built on first use, needs a C++ "
         "compiler; several times the training iterations/s of 'torch' on the CPU, docs/experiments.md, section 4); "
@@ -132,14 +133,6 @@ class TrainParams(StageParams):
     processes: int = Field(1, ge=1, description="Data-parallel training processes (torch.distributed DDP, launched "
                            "with torchrun; gloo on CPU, nccl with one GPU per process). batch_size is the global "
                            "batch and must divide by it; 1 = train in the stage's own process.")
-
-
-def _device(name: str) -> torch.device:
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if name not in ("cpu", "cuda") or (name == "cuda" and not torch.cuda.is_available()):
-        raise ConfigError(f"train.device={name!r}: use 'auto', 'cpu' or 'cuda' (CUDA must be available)")
-    return torch.device(name)
 
 
 def _raymarch_kernel(name: RaymarchKernel, device: torch.device) -> RaymarchKernel:
@@ -242,7 +235,7 @@ def train(ctx: StageContext, rank: int = 0, world_size: int = 1, device: torch.d
     params: TrainParams = ctx.params  # type: ignore[assignment]
     if params.threads:
         torch.set_num_threads(params.threads)
-    device = device or _device(params.device)
+    device = device or torch.device(resolve_device(params.device, "train.device"))
     kernel = _raymarch_kernel(params.raymarch_kernel, device)
     lead = rank == 0
     if lead:

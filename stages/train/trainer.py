@@ -21,7 +21,6 @@ import copy
 import json
 import logging
 import math
-import os
 import threading
 import time
 import weakref
@@ -38,6 +37,7 @@ from avatar.model import RelightableMVP, kl_divergence
 from avatar.raymarch import RaymarchKernel, raymarch
 from avatar.render import BasisLights, PointLights, Rays, decode, decode_lights, render
 from avatar.travatar import LightBasis
+from pipeline.workspace import atomic_path
 
 
 class TrainingStopped(RuntimeError):
@@ -199,9 +199,8 @@ class Renderer:
 
 
 def _atomic_save(obj: dict, path: Path) -> None:
-    tmp = path.with_name(path.name + f".tmp{os.getpid()}")
-    torch.save(obj, tmp)
-    os.replace(tmp, path)
+    with atomic_path(path) as tmp:
+        torch.save(obj, tmp)
 
 
 class _BatchLoss(nn.Module):
