@@ -24,6 +24,8 @@ from pathlib import Path
 from pydantic import Field
 
 from pipeline.stage import Stage, StageContext, StageParams
+from pipeline.workspace import RUNNER_METRICS_FILE
+from stages.capture.output import CaptureOutput
 from stages.report.capacity import BENCH_PNG as CAPACITY_PNG, capacity_section
 from stages.report.light_oracle import capture_fingerprint, light_oracle_section
 from stages.report.seeds import seeds_section
@@ -60,7 +62,7 @@ def bench_results_folder(params: ReportParams) -> list[Path]:
 
 
 def _read_metrics(folder: Path) -> dict[str, float]:
-    path = folder / "metrics.json"
+    path = folder / RUNNER_METRICS_FILE
     if not path.is_file():
         return {}
     values = json.loads(path.read_text(encoding="utf-8"))
@@ -210,9 +212,9 @@ def run(ctx: StageContext) -> None:
     glance_table.add([_fmt(capture.get(k)) for k in
                       ("cameras", "frames", "full_on_frames", "olat_frames", "dropped_frames", "seconds")])
     glance.table(glance_table)
-    for name in ("contact_sheet.png", "strip.png"):
-        if (ctx.input("capture") / name).is_file():
-            glance.figure(ctx.input("capture") / name, name.removesuffix(".png").replace("_", " "))
+    for name, path in CaptureOutput(ctx.input("capture")).previews():
+        if path.is_file():
+            glance.figure(path, name.removesuffix(".png").replace("_", " "))
     sections.append(glance)
 
     targets_section, verdicts = _targets_section(merged, charts)
