@@ -36,7 +36,8 @@ ROOT = Path(__file__).resolve().parents[1]
 PRODUCTION = ("avatar", "scene", "hardware", "pipeline", "stages", "benchmarks")
 
 #: The stage packages whose outputs are typed (``stages/<package>/output.py``).
-COVERED = ("sequence", "capture", "calibrate", "lightcal", "track", "stabilize", "matte", "train", "relight")
+COVERED = ("sequence", "capture", "calibrate", "lightcal", "track", "stabilize", "matte", "train", "relight",
+           "evaluate", "report")
 
 #: Modules allowed to spell another package's contract name, and why.
 EXCEPTIONS: dict[tuple[str, str], str] = {

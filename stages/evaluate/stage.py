@@ -31,7 +31,6 @@ Reads ground truth (``capture.truth``); nothing reads its output back into a pro
 
 from __future__ import annotations
 
-import json
 import math
 import time
 
@@ -43,7 +42,8 @@ from pipeline.stage import Stage, StageContext, StageParams
 from stages.capture.output import CaptureOutput, CaptureTruth
 from stages.evaluate import charts
 from stages.evaluate.measure import sweep_psnr
-from stages.evaluate.limits import LIMITS_FILE, LightLimits, write_limits
+from stages.evaluate.limits import LightLimits, write_limits
+from stages.evaluate.output import EvaluateOutput
 from stages.evaluate.sweeps import (Crossing, angle_to_nearest_deg, azimuth_limit_deg, extrapolation_limit_deg,
                                     orbit_directions, scale_limits, unit)
 from stages.track.output import TrackOutput
@@ -286,34 +286,34 @@ def _write_outputs(ctx: StageContext, params: EvaluateParams, orbits: dict, limi
                    centre: np.ndarray, train_dirs: np.ndarray, scales: np.ndarray, expr_psnr: np.ndarray,
                    expr_threshold: float, low: Crossing, high: Crossing, samples: dict, strip_truth: list,
                    strip_pred: list) -> None:
-    out = ctx.out
+    out = EvaluateOutput(ctx.out)
     limits = LightLimits(limit.x, limit.censored, light_threshold, tuple(float(v) for v in centre),
                          tuple(tuple(float(v) for v in d) for d in train_dirs))
-    write_limits(out / LIMITS_FILE, limits, {
+    write_limits(out.limits_path, limits, {
         "failed_at_start": limit.failed_at_start,
         "light_orbit_azimuth_limit_deg": samples["light_orbit_azimuth_limit_deg"],
         "expression_scale_limit_low": low.x, "expression_scale_limit_high": high.x,
         "expression_scale_censored_low": low.censored, "expression_scale_censored_high": high.censored,
         "expression_threshold_db": expr_threshold})
-    (out / "sweeps.json").write_text(json.dumps(samples, indent=1) + "\n", encoding="utf-8")
+    out.write_sweeps(samples)
     # No per-point labels: the report annotates every labelled point and an orbit has dozens.
     points = [{"x": ft, "y": p, "series": f"{plane} orbit"}
               for plane, (_angles, from_train, psnr_db) in orbits.items()
               for ft, p in zip(from_train, psnr_db)]
     points.append({"x": limit.x, "y": light_threshold, "series": "limit", "chosen": True,
                    "label": f"limit {limit.x:.0f} deg" + (" (not reached)" if limit.censored else "")})
-    charts.write_series(out / "tradeoffs" / "light_orbit.json",
+    charts.write_series(out.light_orbit_series_path,
                         f"Point light orbit at {params.orbit_radius_m:g} m: PSNR vs angle from the training lights",
                         "angle from the nearest training light (deg)", "PSNR (dB)", points)
     points = [{"x": s, "y": p, "series": "held-out frame", "label": f"x{s:g}"} for s, p in zip(scales, expr_psnr)]
     points += [{"x": c.x, "y": expr_threshold, "series": "limit", "chosen": True, "label": f"{side} limit x{c.x:.2f}"}
                for side, c in (("low", low), ("high", high))]
-    charts.write_series(out / "tradeoffs" / "expression_scale.json", "Expression magnitude: PSNR vs weight scale",
+    charts.write_series(out.expression_series_path, "Expression magnitude: PSNR vs weight scale",
                         "blendshape weight scale", "PSNR (dB)", points)
-    charts.light_orbit_png(out / "light_orbit.png", orbits, light_threshold, limit)
-    charts.expression_png(out / "expression_scale.png", scales, expr_psnr, expr_threshold, low, high)
+    charts.light_orbit_png(out.light_orbit_png_path, orbits, light_threshold, limit)
+    charts.expression_png(out.expression_png_path, scales, expr_psnr, expr_threshold, low, high)
     if strip_truth:
-        charts.strip_png(out / "orbit_strip.png", strip_truth, strip_pred)
+        charts.strip_png(out.orbit_strip_path, strip_truth, strip_pred)
 
 
 STAGE = Stage(
