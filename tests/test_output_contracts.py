@@ -153,6 +153,22 @@ def test_no_module_spells_another_stages_output_file_names():
     assert not problems, "\n".join(problems)
 
 
+def test_output_modules_import_only_their_stage_scene_and_pipeline():
+    # So that any module can read any stage's output without an import cycle.
+    for package in _stage_packages():
+        path = ROOT / "stages" / package / "output.py"
+        if not path.is_file():
+            continue
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            names = ([a.name for a in node.names] if isinstance(node, ast.Import) else
+                     [node.module or ""] if isinstance(node, ast.ImportFrom) else [])
+            for name in names:
+                top = name.split(".")[0]
+                if top in PRODUCTION:
+                    assert top in ("scene", "pipeline") or name.startswith(f"stages.{package}."), \
+                        f"stages/{package}/output.py imports {name}"
+
+
 def test_the_scan_sees_the_spellings_it_must():
     names = {"manifest.json", "frames", "scans.npz"}
     source = '''

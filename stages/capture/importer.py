@@ -110,7 +110,7 @@ def import_capture(ctx: StageContext, source: Path) -> dict:
         received=lambda cam, r: files[cam][r], place=link_or_copy, frame_times=frame_times)
     manifest.update(subject=str(info.get("subject", ctx.subject)), width=width, height=height)
     out.write_manifest(manifest)
-    for optional in (out.scans_path.parent, out.calib_dir):
+    for optional in (out.scans_dir, out.calib_dir):
         src = root / optional.name
         if src.is_dir():
             _inside(root, src)

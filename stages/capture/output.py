@@ -128,6 +128,7 @@ class CaptureOutput(StageOutput):
         """The cameras' frame folders that exist, sorted by name."""
         return sorted(p for p in self.file(_FRAMES).glob("*") if p.is_dir())
 
+    @property
     def received_dir(self) -> Path:
         """Scratch folder of the images in arrival order, before labelling (capture stage only)."""
         return self.file(_RECEIVED)
@@ -137,6 +138,10 @@ class CaptureOutput(StageOutput):
 
     # --- scans, controller log, previews --------------------------------------------------
     @property
+    def scans_dir(self) -> Path:
+        return self.file(_SCANS_DIR)
+
+    @property
     def scans_path(self) -> Path:
         return self.file(_SCANS_DIR, _SCANS)
 
@@ -145,7 +150,7 @@ class CaptureOutput(StageOutput):
         return self.read_npz(_SCANS_DIR, _SCANS, keys=keys)
 
     def write_scans(self, names: list[str], vertices: np.ndarray, faces: np.ndarray) -> None:
-        self.file(_SCANS_DIR).mkdir()
+        self.scans_dir.mkdir()
         np.savez_compressed(self.scans_path, names=np.array(names), vertices=vertices, faces=faces)
 
     def controller_log(self) -> dict[str, Any]:

@@ -199,7 +199,7 @@ def _virtual_capture(ctx: StageContext, params: CaptureParams) -> dict:
     # One cache entry per pulse: frames added to a take render alone, the rest come from the cache.
     cache = stage_item_cache(ctx, RENDER_CODE)
     results = cache.map(ctx.executor, render_task, tasks, pulse_key, desc="frames",
-                        consume=lambda k, rendered: place_pulse(rendered, arrivals_of[k], out.received_dir(),
+                        consume=lambda k, rendered: place_pulse(rendered, arrivals_of[k], out.received_dir,
                                                                 true_out.mattes_dir, cam_names))
     cache.report(ctx, "frames", metrics_prefix="render_pulses")
     rendered_now = [results[k] for k in cache.computed]
@@ -297,7 +297,7 @@ def _label_and_place(ctx: StageContext, fps: float, cam_names: list[str], n_bars
         for r, (k, status) in enumerate(zip(labels.pulse, labels.status)):
             if status == "ok":
                 place(received(cam, r), out.frame_path(cam, trigger_of_entry[k]))
-    shutil.rmtree(out.received_dir(), ignore_errors=True)
+    shutil.rmtree(out.received_dir, ignore_errors=True)
 
     by_trigger = {t: k for k, t in enumerate(trigger_of_entry)}
     frames = []

@@ -1,7 +1,8 @@
 """A small capture folder rendered by the virtual studio, for the matte tests and benchmark.
 
 It follows the ``capture`` / ``capture.truth`` contracts (``stages.capture.output``) closely
-enough for the matte stages: the manifest, the frames and, in the truth folder, the mattes. The light pattern is the studio's, ``F, O, O, F, ...``;
+enough for the matte stages: the manifest, the frames and, in the truth folder, the mattes.
+The light pattern is the studio's, ``F, O, O, F, ...``;
 optionally some frames show an empty studio (no person: backdrop and sensor noise only).
 """
 

@@ -67,7 +67,7 @@ def run(ctx: StageContext) -> None:
     # The relight stage drives the head with the first tracked mesh: capture frame 0.
     frame = frame_from_weights(weights_all[0])
     scores: dict[str, list[tuple[float, float]]] = {"envmap": [], "point": []}
-    out.compare_dir().mkdir()
+    out.compare_dir.mkdir()
     for name, records in manifest.items():
         for rec in records[:params.frames_per_sequence]:
             kind = rec.get("kind")

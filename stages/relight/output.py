@@ -87,6 +87,7 @@ class RelightEvalOutput(StageOutput):
     def truth_path(self, name: str, index: int) -> Path:
         return self.file(_EVAL_TRUTH, name, f"{int(index):06d}.exr")
 
+    @property
     def compare_dir(self) -> Path:
         return self.file(_EVAL_COMPARE)
 

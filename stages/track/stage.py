@@ -206,7 +206,8 @@ def _write_overlay(ctx: StageContext, params: TrackParams, capture: CaptureOutpu
                 image = np.zeros((cam.height, cam.width, 3), np.uint8)
             label = f"{cam.name} frame {key_frames[k]['index']}"
             tiles.append(draw_view(image, cam, verts_world, edges, uv_all[k, c, ids], lm_world, label))
-    write_png_rgb(TrackOutput(ctx.out).overlay_path, contact_sheet(tiles, columns=len(cams), tile_width=min(320, cams[0].width)))
+    sheet = contact_sheet(tiles, columns=len(cams), tile_width=min(320, cams[0].width))
+    write_png_rgb(TrackOutput(ctx.out).overlay_path, sheet)
 
 
 def run(ctx: StageContext) -> None:

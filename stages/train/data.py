@@ -117,8 +117,9 @@ def load_train_data(inputs: dict[str, Path], image_width_px: int, log, max_frame
     ``resident_limit_gb``: images and mattes larger than this go to memory-mapped files in
     ``spill_dir`` (required then) instead of RAM.
     """
-    capture, stabilize = CaptureOutput(inputs["capture"]), StabilizeOutput(inputs["stabilize"])
-    track, matte, lightcal = TrackOutput(inputs["track"]), MatteOutput(inputs["matte"]), LightcalOutput(inputs["lightcal"])
+    capture, stabilize, track = (CaptureOutput(inputs["capture"]), StabilizeOutput(inputs["stabilize"]),
+                                 TrackOutput(inputs["track"]))
+    matte, lightcal = MatteOutput(inputs["matte"]), LightcalOutput(inputs["lightcal"])
     manifest = capture.manifest(keys=("cameras", "frames", "width", "height"))
     bars = {int(b["id"]): np.asarray(b["center_world"], np.float64) for b in lightcal.bars()}
     num_bars = max(int(manifest.get("bars", 0)), max(bars) + 1 if bars else 0)
