@@ -35,15 +35,17 @@ def _noisy_copy(clean: Path, dst: Path, noise: float, keep_poses: int | None, se
                 mirror: bool = False) -> None:
     """Copy a capture, adding sensor noise to the board (and mirror) images, keeping only the first poses."""
     from scene.image_io import read_exr, write_exr
+    from stages.capture.output import CaptureOutput
 
-    shutil.copytree(clean, dst, ignore=None if mirror else shutil.ignore_patterns("mirror"))
+    copy = CaptureOutput(dst)
+    shutil.copytree(clean, dst, ignore=None if mirror else shutil.ignore_patterns(copy.mirror_dir.name))
     rng = np.random.default_rng(seed)
     if mirror:
-        for path in sorted((dst / "calib" / "mirror").glob("*/*.exr")):
+        for path in copy.mirror_images():
             img = read_exr(path)
             noisy = np.clip(img[..., :1] + rng.normal(0.0, noise, size=img.shape[:2] + (1,)), 0.0, 1.0)
             write_exr(path, np.repeat(noisy, 3, axis=-1))
-    for path in sorted((dst / "calib" / "charuco").glob("*/*.exr")):
+    for path in sorted(p for cam in copy.charuco_cameras() for p in copy.charuco_images(cam)):
         if keep_poses is not None and int(path.stem) >= keep_poses:
             path.unlink()
             continue

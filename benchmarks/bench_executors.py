@@ -83,7 +83,9 @@ def _relight_items(folder: Path) -> list:
     from avatar.layout import build_layout
     from avatar.model import RelightableMVP
     from pipeline.hashing import hash_bytes, hash_path
+    from stages.relight.output import RelightOutput
     from stages.relight.render import FrameItem
+    from stages.train.output import TrainOutput
     from stages.relight.sequences import ViewSpec, orbit_positions
 
     torch.set_num_threads(1)  # as the workers (OMP_NUM_THREADS=1)
@@ -93,14 +95,16 @@ def _relight_items(folder: Path) -> list:
                           rgb_channels=(16, 12), alpha_channels=(8, 4), geometry_channels=8, steps_per_ray=24)
     torch.manual_seed(0)
     model = RelightableMVP(config, build_layout(verts, np.asarray(mesh.faces), config.prims_per_side), num_bars=4)
-    save_trained(folder / "ours", model, "ours")
-    np.savez(folder / "meshes.npz", default=verts[None])
+    train, relight = TrainOutput(folder), RelightOutput(folder)  # a train and a relight output in one folder
+    model_dir, meshes_path = train.model_dir("ours"), relight.meshes_path
+    save_trained(model_dir, model, "ours")
+    np.savez(meshes_path, default=verts[None])
     view = ViewSpec(48, 64, 0.9, 24.0)
     camera = view.camera(view.front_eye())
     items = []
     for i in range(RELIGHT_FRAMES):  # 16 lights on a ring, turned a little each frame
         lights = orbit_positions(1.5, 16, 0.2 + 0.01 * i)
-        items.append(FrameItem(str(folder / "ours"), hash_path(folder / "ours"), str(folder / "meshes.npz"),
+        items.append(FrameItem(str(model_dir), hash_path(model_dir), str(meshes_path),
                                "default", 0, hash_bytes(verts.tobytes()), camera, lights, np.full((16, 3), 0.1),
                                config.steps_per_ray, 16, 1.0, "cpu"))
     return items

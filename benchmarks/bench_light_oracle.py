@@ -105,8 +105,9 @@ def main() -> dict:
     from hardware.studio.subject import make_subject
     from pipeline.errors import PipelineError
     from pipeline.workspace import Workspace, workspace_root
-    from scene.camera import Rigid, load_cameras
+    from scene.camera import Rigid
     from scene.rig import default_rig
+    from stages.capture.output import CaptureTruth
     from stages.train.data import load_train_data
     from stages.train.evaluate import eval_pairs
     from stages.train.splits import make_splits
@@ -119,8 +120,8 @@ def main() -> dict:
     images_per_split = int(os.environ.get("ORACLE_IMAGES", "0")) or params.eval_images
     try:
         ws = Workspace(workspace_root(ROOT), subject)
-        truth = ws.output_path("capture", "truth")
-        studio_json = json.loads((truth / "studio.json").read_text())
+        truth = CaptureTruth(ws.output_path("capture", "truth"))
+        studio_json = truth.studio()
         inputs = {k: ws.output_path(k) for k in ("capture", "stabilize", "track", "matte", "lightcal")}
     except (PipelineError, OSError, ValueError) as err:
         print(f"light oracle: no capture for subject '{subject}' ({err}); run `make subject S={subject}` first")
@@ -137,9 +138,9 @@ def main() -> dict:
     training_bars = sorted(int(b) for b in np.unique(data.bar[train_frames]))
     basis = LightBasis(np.stack([bar_dirs[b] for b in training_bars]))
 
-    frames = np.load(truth / "frames.npz")
+    frames = truth.frames(keys=("index",))
     pulse_of_frame = {int(idx): i for i, idx in enumerate(frames["index"])}
-    cameras = {c.name: c for c in load_cameras(truth / "cameras.json")}
+    cameras = {c.name: c for c in truth.cameras()}
     captured = RenderSettings(**studio_json["render_settings"])
     # Silhouette samples as captured: bench_truth_floor's 6 x 6 would cost 2.5x the time here.
     clean = replace(captured, bar_samples=bar_samples, shot_noise_gain=0.0, read_noise=0.0)

@@ -28,6 +28,7 @@ TARGET_MM = 10.0
 def _place(capture: Path, truth: Path, work: Path, **params) -> tuple[dict, dict, dict, float]:
     from pipeline.testing import run_stage_for_test
     from stages.lightcal.eval_stage import STAGE as EVAL
+    from stages.lightcal.output import LightcalOutput
     from stages.lightcal.stage import STAGE
 
     start = time.perf_counter()
@@ -35,8 +36,9 @@ def _place(capture: Path, truth: Path, work: Path, **params) -> tuple[dict, dict
     seconds = time.perf_counter() - start
     ev = run_stage_for_test(EVAL, work, inputs={"lightcal": out, "capture.truth": truth})
     metrics = {**json.loads((out / "metrics.json").read_text()), **json.loads((ev / "metrics.json").read_text())}
-    bars = {int(b["id"]): b for b in json.loads((out / "bars.json").read_text())["bars"]}
-    return metrics, bars, json.loads((out / "report.json").read_text()), seconds
+    placed = LightcalOutput(out)
+    bars = {int(b["id"]): b for b in placed.bars()}
+    return metrics, bars, placed.report(), seconds
 
 
 def _per_bar(bars: dict, report: dict, truth_bars: list[dict], side: set[int]) -> list[dict]:
@@ -66,8 +68,8 @@ def _summary(rows: list[dict]) -> dict:
 def main() -> None:
     """Render the take, place the bars both ways, print and write the figures."""
     from hardware.studio.calibration_takes import BarLight, CalibrationTakeParams, render_mirror_take, takes_from_rig
-    from scene.camera import save_cameras
     from scene.rig import default_rig
+    from stages.capture.output import CaptureOutput, CaptureTruth
 
     out_dir = Path("bench-results")
     out_dir.mkdir(exist_ok=True)
@@ -88,11 +90,12 @@ def main() -> None:
         params = CalibrationTakeParams(volume_center_m=tuple(head))
         take_s = render_mirror_take(coarse, bars, root / "capture", root / "truth", params, spheres,
                                     roi_cameras=native)
-        save_cameras(root / "truth" / "cameras.json", coarse)
+        truth, capture = CaptureTruth(root / "truth"), CaptureOutput(root / "capture")
+        truth.write_cameras(coarse)
         truth_bars = [b.to_dict() for b in light_bars]
-        (root / "truth" / "bars.json").write_text(json.dumps({"bars": truth_bars}))
-        windows_bytes = sum(p.stat().st_size for p in (root / "capture" / "calib" / "mirror_roi").rglob("*.exr"))
-        full_bytes = sum(p.stat().st_size for p in (root / "capture" / "calib" / "mirror").rglob("*.exr"))
+        truth.write_bars({"bars": truth_bars})
+        windows_bytes = sum(p.stat().st_size for p in capture.mirror_roi_images())
+        full_bytes = sum(p.stat().st_size for p in capture.mirror_images())
         runs = {}
         for name, use_windows in (("windows", True), ("full_images", False)):
             metrics, placed, report, seconds = _place(root / "capture", root / "truth", root / name,

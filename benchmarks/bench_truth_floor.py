@@ -42,8 +42,9 @@ def main() -> dict:
     from hardware.studio.subject import make_subject
     from pipeline.errors import PipelineError
     from pipeline.workspace import Workspace, workspace_root
-    from scene.camera import Rigid, load_cameras
+    from scene.camera import Rigid
     from scene.rig import default_rig
+    from stages.capture.output import CaptureTruth
 
     subject = os.environ.get("TRUTH_SUBJECT", "alice")
     pulses = int(os.environ.get("TRUTH_PULSES", "4"))
@@ -52,14 +53,14 @@ def main() -> dict:
     width = int(os.environ.get("TRUTH_WIDTH", "0")) or int(tiny_train_params()["image_width_px"])
     try:
         ws = Workspace(workspace_root(ROOT), subject)
-        truth = ws.output_path("capture", "truth")
-        studio_json = json.loads((truth / "studio.json").read_text())
+        truth = CaptureTruth(ws.output_path("capture", "truth"))
+        studio_json = truth.studio()
     except (PipelineError, OSError, ValueError) as err:
         print(f"truth floor: no capture for subject '{subject}' ({err}); run `make subject S={subject}` first")
         return {}
-    frames = np.load(truth / "frames.npz")
-    lit = json.loads((truth / "lights_per_pulse.json").read_text())
-    cameras = load_cameras(truth / "cameras.json")[::every_camera]
+    frames = truth.frames()
+    lit = truth.lights_per_pulse()
+    cameras = truth.cameras()[::every_camera]
     captured = RenderSettings(**studio_json["render_settings"])
     clean = replace(captured, bar_samples=bar_samples, edge_samples=6, shot_noise_gain=0.0, read_noise=0.0)
     person = make_subject(studio_json["subject"], studio_json["identity_seed"], texture_size=studio_json["texture_size"])

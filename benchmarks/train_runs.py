@@ -56,12 +56,13 @@ def _train_once(spec: dict) -> dict:
 
     torch.set_num_threads(1)
     from pipeline.testing import run_stage_for_test
+    from stages.train.output import TrainOutput
     from stages.train.stage import STAGE
 
     workdir = Path(spec["workdir"])
     out = run_stage_for_test(STAGE, workdir, {k: Path(v) for k, v in spec["inputs"].items()}, spec["params"])
     return {"metrics": json.loads((out / "metrics.json").read_text()),
-            "capacity": json.loads((out / "capacity.json").read_text())}
+            "capacity": TrainOutput(out).capacity()}
 
 
 def run_train(inputs: dict[str, str], params: dict, scratch: Path, name: str) -> dict:

@@ -2,14 +2,13 @@
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
 from pipeline.errors import InputError
 from scene.camera import Rigid
+from stages.capture.output import CaptureOutput
 
 
 @dataclass(frozen=True)
@@ -36,18 +35,16 @@ class BoardSpec:
         return np.asarray(self.cv_board().getChessboardCorners(), dtype=np.float64)
 
 
-def load_board_spec(path: Path, log=None) -> BoardSpec:
-    """Read ``calib/board.json``; errors name the file and the key.
+def load_board_spec(capture: CaptureOutput, log=None) -> BoardSpec:
+    """Read the capture's board spec (``CaptureOutput.board_spec``); errors name the file and the key.
 
     ``world_from_board_reference`` is the board's known fixture pose in the studio world at
     ``reference_pose_index``; without it the board is assumed upright at the origin, facing +z.
     """
     import cv2
 
-    try:
-        d = json.loads(Path(path).read_text())
-    except (OSError, ValueError) as err:
-        raise InputError(f"{path}: cannot read the board spec ({err}); the capture must hold calib/board.json") from err
+    path = capture.board_spec_path
+    d = capture.board_spec()
     for key in ("squares_x", "squares_y", "square_m", "marker_m", "dictionary"):
         if key not in d:
             raise InputError(f"{path}: board spec lacks '{key}'; it needs squares_x, squares_y, square_m, "

@@ -17,7 +17,9 @@ import numpy as np
 
 from pipeline.errors import InputError
 from pipeline.stage import Stage, StageContext, StageParams
-from scene.camera import Camera, load_cameras
+from scene.camera import Camera
+from stages.calibrate.output import CalibrateOutput
+from stages.capture.output import CaptureTruth
 
 
 class CalibrateEvalParams(StageParams):
@@ -93,13 +95,10 @@ def camera_errors(est: dict[str, Camera], true: dict[str, Camera]) -> dict[str, 
 
 def run(ctx: StageContext) -> None:
     """Compare ``calibrate/cameras.json`` with ``capture.truth/cameras.json``."""
-    est_path = ctx.input("calibrate") / "cameras.json"
-    true_path = ctx.input("capture.truth") / "cameras.json"
-    try:
-        est = {c.name: c for c in load_cameras(est_path)}
-        true = {c.name: c for c in load_cameras(true_path)}
-    except ValueError as err:
-        raise InputError(str(err)) from err
+    calibrated, truth = CalibrateOutput(ctx.input("calibrate")), CaptureTruth(ctx.input("capture.truth"))
+    est_path, true_path = calibrated.cameras_path, truth.cameras_path
+    est = {c.name: c for c in calibrated.cameras()}
+    true = {c.name: c for c in truth.cameras()}
     missing = sorted(set(true) - set(est))
     if missing:
         ctx.log.warning("cameras %s are not in the calibration (dropped); compared the rest", ", ".join(missing))
@@ -107,9 +106,8 @@ def run(ctx: StageContext) -> None:
         raise InputError(f"{est_path}: no camera in common with the ground truth {true_path}")
     metrics = camera_errors(est, true)
     metrics["cameras_missing"] = len(missing)
-    native_path = ctx.input("calibrate") / "cameras_native.json"
-    if native_path.is_file():
-        native = {c.name: c for c in load_cameras(native_path)}
+    if calibrated.has_cameras_native():
+        native = {c.name: c for c in calibrated.cameras_native()}
         metrics["principal_err_px_max_native"] = max(
             float(np.hypot(c.cx - t.cx, c.cy - t.cy))
             for n, c in native.items() if n in true

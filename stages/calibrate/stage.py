@@ -20,8 +20,6 @@ keypoints it holds), ``board_poses.json``, ``report.json`` and ``residuals/<cam>
 
 from __future__ import annotations
 
-import json
-from pathlib import Path
 from typing import Literal
 
 import numpy as np
@@ -29,11 +27,13 @@ from pydantic import Field
 
 from pipeline.errors import InputError
 from pipeline.stage import Stage, StageContext, StageParams
-from scene.camera import Camera, save_cameras
+from scene.camera import Camera
 from stages.calibrate.board import CharucoFinder, Detection, FrameVerdict, load_board_spec
 from stages.calibrate.bundle import bundle_adjust, export_colmap
 from stages.calibrate.initial import calibrate_intrinsics, chain_poses
+from stages.calibrate.output import CalibrateOutput
 from stages.calibrate.report import plot_residuals, residuals_px
+from stages.capture.output import CaptureOutput
 
 
 class CalibrateParams(StageParams):
@@ -59,16 +59,15 @@ class CalibrateParams(StageParams):
         False, description="Drop (with a warning) cameras that cannot be calibrated instead of failing.")
 
 
-def _performance_size(capture: Path) -> tuple[int, int] | None:
-    """(width, height) of the performance images from ``manifest.json``; None when it does not say."""
-    manifest = capture / "manifest.json"
-    if not manifest.is_file():
+def _performance_size(capture: CaptureOutput) -> tuple[int, int] | None:
+    """(width, height) of the performance images from the capture's manifest; None when it does not say."""
+    if not capture.has_manifest():
         return None
+    d = capture.manifest()
     try:
-        d = json.loads(manifest.read_text())
         return (int(d["width"]), int(d["height"])) if "width" in d and "height" in d else None
     except (ValueError, TypeError) as err:
-        raise InputError(f"{manifest}: bad width/height ({err}); re-run the capture stage") from err
+        raise capture.malformed(capture.manifest_path, f"bad width/height ({err})") from err
 
 
 def to_performance_resolution(cam: Camera, size: tuple[int, int] | None) -> Camera:
@@ -79,30 +78,22 @@ def to_performance_resolution(cam: Camera, size: tuple[int, int] | None) -> Came
     scaled = cam.scaled(factor)
     if (scaled.width, scaled.height) != size:
         raise InputError(f"camera {cam.name}: board images are {cam.width}x{cam.height} but the performance images "
-                         f"are {size[0]}x{size[1]} (manifest.json), not the same aspect ratio; the calibration "
+                         f"are {size[0]}x{size[1]} (the capture manifest), not the same aspect ratio; the calibration "
                          "take must be shot with the performance's sensor crop")
     return scaled
 
 
-def _list_cameras(capture: Path) -> list[str]:
-    manifest = capture / "manifest.json"
-    if manifest.is_file():
-        try:
-            return [str(c) for c in json.loads(manifest.read_text())["cameras"]]
-        except (ValueError, KeyError) as err:
-            raise InputError(f"{manifest}: no camera list ({err}); re-run the capture stage") from err
-    root = capture / "calib" / "charuco"
-    if not root.is_dir():
-        raise InputError(f"{root}: no board takes in the capture; the capture must hold calib/charuco/<cam>/")
-    return sorted(p.name for p in root.iterdir() if p.is_dir())
+def _list_cameras(capture: CaptureOutput) -> list[str]:
+    if capture.has_manifest():
+        return [str(c) for c in capture.manifest(keys=("cameras",))["cameras"]]
+    return capture.charuco_cameras()
 
 
-def _detect_camera(capture: Path, name: str, finder: CharucoFinder, log
+def _detect_camera(capture: CaptureOutput, name: str, finder: CharucoFinder, log
                    ) -> tuple[list[Detection], list[FrameVerdict], tuple[int, int] | None]:
     from scene.image_io import read_exr
 
-    folder = capture / "calib" / "charuco" / name
-    files = sorted(folder.glob("*.exr")) if folder.is_dir() else []
+    files = capture.charuco_images(name)
     detections, verdicts, size = [], [], None
     for path in files:
         try:
@@ -131,8 +122,9 @@ def _detect_camera(capture: Path, name: str, finder: CharucoFinder, log
 def run(ctx: StageContext) -> None:
     """Calibrate every camera from the capture's board takes (see the module docstring)."""
     params: CalibrateParams = ctx.params  # type: ignore[assignment]
-    capture = ctx.input("capture")
-    spec = load_board_spec(capture / "calib" / "board.json", ctx.log)
+    capture = CaptureOutput(ctx.input("capture"))
+    out = CalibrateOutput(ctx.out)
+    spec = load_board_spec(capture, ctx.log)
     reference_frame = spec.reference_pose_index if params.reference_frame is None else params.reference_frame
     corners_board = spec.corners_board()
     finder = CharucoFinder(spec, params.min_corners, params.max_saturated_fraction, params.max_edge_width_px)
@@ -190,31 +182,30 @@ def run(ctx: StageContext) -> None:
     cameras = [ba.cameras[n].with_pose(ba.cameras[n].cam_from_world @ rig_from_world) for n in names]
     world_from_board = {f: rig_from_world.inverse() @ p for f, p in ba.rig_from_board.items()}
 
-    save_cameras(ctx.out / "cameras_native.json", cameras)
+    out.write_cameras_native(cameras)
     perf_size = _performance_size(capture)
-    save_cameras(ctx.out / "cameras.json", [to_performance_resolution(c, perf_size) for c in cameras])
-    export_colmap(ctx.out / "colmap", {c.name: c for c in cameras}, detections, world_from_board, corners_board, ref,
+    out.write_cameras([to_performance_resolution(c, perf_size) for c in cameras])
+    export_colmap(out.colmap_dir, {c.name: c for c in cameras}, detections, world_from_board, corners_board, ref,
                   params.camera_model)
-    (ctx.out / "board_poses.json").write_text(json.dumps(
-        {"world_from_board": {f"{f:04d}": {"R": p.R.tolist(), "t": p.t.tolist()}
-                              for f, p in sorted(world_from_board.items())}}, indent=1))
-    (ctx.out / "residuals").mkdir()
+    out.write_board_poses({"world_from_board": {f"{f:04d}": {"R": p.R.tolist(), "t": p.t.tolist()}
+                                                for f, p in sorted(world_from_board.items())}})
+    out.make_residuals_dir()
     report, all_res = {}, []
     for cam in cameras:
         res, obs = residuals_px(cam, detections[cam.name], world_from_board, corners_board)
         all_res.append(res)
         rms = float(np.sqrt(np.mean(np.sum(res ** 2, axis=1))))
-        plot_residuals(ctx.out / "residuals" / f"{cam.name}.png", cam, res, obs)
+        plot_residuals(out.residuals_path(cam.name), cam, res, obs)
         report[cam.name] = {
             "frames_used": len(detections[cam.name]), "corners_used": int(len(res)), "reproj_rms_px": rms,
             "opencv_rms_px": intr[cam.name].rms_px,
             "frames": [_frame_entry(v, intr[cam.name].cam_from_board) for v in verdicts[cam.name]],
             "fx": cam.fx, "fy": cam.fy, "cx": cam.cx, "cy": cam.cy, "dist": list(cam.dist)}
         ctx.log.info("%s: %d frames, %d corners, RMS %.3f px", cam.name, len(detections[cam.name]), len(res), rms)
-    (ctx.out / "report.json").write_text(json.dumps(
+    out.write_report(
         {"reference_camera": ref, "reference_frame": reference_frame, "dropped_cameras": sorted(problems),
          "calibration_size": list(sizes[names[0]]), "performance_size": list(perf_size) if perf_size else None,
-         "bundle_adjustment": ba.summary, "cameras": report}, indent=1))
+         "bundle_adjustment": ba.summary, "cameras": report})
     res = np.concatenate(all_res)
     # pixels of the board images (the native resolution); cameras.json may be at another
     ctx.metrics["reproj_rms_px"] = float(np.sqrt(np.mean(np.sum(res ** 2, axis=1))))

@@ -10,12 +10,8 @@ per trigger). Metrics: ``label_errors`` (frames marked ok whose light is wrong),
 
 from __future__ import annotations
 
-import json
-
-import numpy as np
-
-from pipeline.errors import InputError
 from pipeline.stage import Stage, StageContext, StageParams
+from stages.capture.output import CaptureOutput, CaptureTruth
 
 
 class CaptureEvalParams(StageParams):
@@ -24,13 +20,10 @@ class CaptureEvalParams(StageParams):
 
 def run(ctx: StageContext) -> None:
     """Compare labels with the truth; write the metrics."""
-    capture, truth = ctx.input("capture"), ctx.input("capture.truth")
-    try:
-        manifest = json.loads((capture / "manifest.json").read_text())
-        lit = json.loads((truth / "lights_per_pulse.json").read_text())
-        received = np.load(truth / "frames.npz")["received"]  # [C, F]
-    except (OSError, ValueError, KeyError) as err:
-        raise InputError(f"capture_eval: cannot read the capture or its truth ({err}); re-run capture") from err
+    capture, truth = CaptureOutput(ctx.input("capture")), CaptureTruth(ctx.input("capture.truth"))
+    manifest = capture.manifest(keys=("frames",))
+    lit = truth.lights_per_pulse()
+    received = truth.frames(keys=("received",))["received"]  # [C, F]
     label_errors = missed = false_drops = right = 0
     for frame in manifest["frames"]:
         i = int(frame["index"])

@@ -18,6 +18,7 @@ from pipeline.stage import StageContext
 from stages.capture.placement import label_and_place
 from scene.colour import luminance
 from scene.image_io import read_exr
+from stages.capture.output import CaptureOutput
 
 
 def _inside(root: Path, path: Path) -> Path:
@@ -101,19 +102,20 @@ def import_capture(ctx: StageContext, source: Path) -> dict:
     takes_cfg = info.get("takes") or [{"name": "take", "frames": n_triggers}]
     take_of = [t["name"] for t in takes_cfg for _ in range(int(t["frames"]))]
     takes = tuple(t["name"] for t in takes_cfg)
-    (ctx.out / "controller_log.json").write_text(json.dumps({"fps": fps, "entries": entries}, indent=1))
+    out = CaptureOutput(ctx.out)
+    out.write_controller_log({"fps": fps, "entries": entries})
     manifest, metrics = label_and_place(
         ctx, fps, cam_names, int(info.get("bars", 32)), takes, take_of, entries, brightness, n_triggers,
         received=lambda cam, r: files[cam][r], place=link_or_copy, frame_times=frame_times)
     manifest.update(subject=str(info.get("subject", ctx.subject)), width=width, height=height)
-    (ctx.out / "manifest.json").write_text(json.dumps(manifest, indent=1))
-    for optional in ("scans", "calib"):
-        src = root / optional
+    out.write_manifest(manifest)
+    for optional in (out.scans_dir, out.calib_dir):
+        src = root / optional.name
         if src.is_dir():
             _inside(root, src)
             for path in sorted(src.rglob("*")):
                 if path.is_file():
-                    dst = ctx.out / optional / path.relative_to(src)
+                    dst = optional / path.relative_to(src)
                     dst.parent.mkdir(parents=True, exist_ok=True)
                     link_or_copy(_inside(root, path), dst)
     metrics.update(imported_images=sum(len(v) for v in files.values()))

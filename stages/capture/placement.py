@@ -16,6 +16,7 @@ from typing import Callable
 from pipeline.errors import InputError
 from pipeline.stage import StageContext
 from stages.capture.labelling import label_frames
+from stages.capture.output import CaptureOutput
 
 
 def label_and_place(ctx: StageContext, fps: float, cam_names: list[str], n_bars: int, takes: tuple[str, ...],
@@ -39,15 +40,15 @@ def label_and_place(ctx: StageContext, fps: float, cam_names: list[str], n_bars:
         raise InputError(f"capture: frames cannot be matched to the controller log ({err})") from err
     for line in result.warnings:
         ctx.log.warning(line)
-    staging = ctx.out / "_received"
-    received = received or (lambda cam, r: staging / cam / f"{r:06d}.exr")
+    out = CaptureOutput(ctx.out)
+    received = received or out.received_path
     for c, cam in enumerate(cam_names):
-        (ctx.out / "frames" / cam).mkdir(parents=True, exist_ok=True)
+        out.frames_dir(cam).mkdir(parents=True, exist_ok=True)
         labels = result.cameras[c]
         for r, (k, status) in enumerate(zip(labels.pulse, labels.status)):
             if status == "ok":
-                place(received(cam, r), ctx.out / "frames" / cam / f"{trigger_of_entry[k]:06d}.exr")
-    shutil.rmtree(staging, ignore_errors=True)
+                place(received(cam, r), out.frame_path(cam, trigger_of_entry[k]))
+    shutil.rmtree(out.received_dir, ignore_errors=True)
 
     by_trigger = {t: k for k, t in enumerate(trigger_of_entry)}
     frames = []

@@ -26,16 +26,17 @@ The calibration takes are cached per camera and take likewise (``calibration_ite
 
 from __future__ import annotations
 
-import json
 import time
 from pathlib import Path
 
 import numpy as np
 from pydantic import Field, field_validator
 
-from pipeline.errors import ConfigError, InputError
+from pipeline.errors import ConfigError
 from pipeline.stage import Stage, StageContext, StageParams
 from scene.rig import RigConfig, default_rig
+from stages.capture.output import CaptureOutput, CaptureTruth
+from stages.sequence.output import SequenceOutput
 
 
 class CaptureParams(StageParams):
@@ -144,14 +145,15 @@ def _virtual_capture(ctx: StageContext, params: CaptureParams) -> dict:
     from stages.capture.virtual import RenderTask, place_pulse, pulse_key, render_task
 
     rig = params.rig
-    seq_path = ctx.input("sequence") / "sequence.json"
+    upstream = SequenceOutput(ctx.input("sequence"))
+    sequence = upstream.sequence(keys=("pattern", "fps", "frames"))
     try:
-        sequence = json.loads(seq_path.read_text())
         pattern = sequence["pattern"]
         fps = float(sequence["fps"])
         n_frames = int(sequence["frames"])
-    except (OSError, ValueError, KeyError, TypeError) as err:
-        raise InputError(f"{seq_path}: not a valid sequence file ({err}); re-run the sequence stage") from err
+    except (ValueError, TypeError) as err:
+        raise upstream.malformed(upstream.sequence_path, err) from err
+    out = CaptureOutput(ctx.out)
     if params.max_frames is not None:
         n_frames = min(n_frames, params.max_frames)
     cameras = rig.cameras_at(params.image_scale)
@@ -164,8 +166,7 @@ def _virtual_capture(ctx: StageContext, params: CaptureParams) -> dict:
         pattern=pattern, n_frames=n_frames, n_bars=len(rig.bars), trigger_times_s=trigger_times,
         faults=Faults(drop_pulses=frozenset(params.controller_missed_pulses)))
     log_json = [entry.to_json() for entry in session.log]
-    (ctx.out / "controller_log.json").write_text(json.dumps(
-        {"program_crc32": session.program_crc32, "fps": fps, "entries": log_json}, indent=1))
+    out.write_controller_log({"program_crc32": session.program_crc32, "fps": fps, "entries": log_json})
 
     counts = _split_takes(n_frames, params.takes, len(pattern))
     seed = params.identity_seed if params.performance_seed is None else params.performance_seed
@@ -176,6 +177,7 @@ def _virtual_capture(ctx: StageContext, params: CaptureParams) -> dict:
                               shot_noise_gain=params.shot_noise_gain, read_noise=params.read_noise,
                               seed=params.noise_seed)
     truth = ctx.extra_outputs["truth"]
+    true_out = CaptureTruth(truth)
     arrivals: list[list[tuple[int, ...]]] = [[() for _ in streams] for _ in range(n_frames)]
     for c, stream in enumerate(streams):  # [F][C] arrival indices of each trigger per camera
         for k, index in enumerate(stream):
@@ -195,8 +197,8 @@ def _virtual_capture(ctx: StageContext, params: CaptureParams) -> dict:
     # One cache entry per pulse: frames added to a take render alone, the rest come from the cache.
     cache = stage_item_cache(ctx)
     results = cache.map(ctx.executor, render_task, tasks, pulse_key, desc="frames",
-                        consume=lambda k, rendered: place_pulse(rendered, arrivals_of[k], ctx.out / "_received",
-                                                                truth / "mattes", cam_names))
+                        consume=lambda k, rendered: place_pulse(rendered, arrivals_of[k], out.received_dir,
+                                                                true_out.mattes_dir, cam_names))
     cache.report(ctx, "frames", metrics_prefix="render_pulses")
     rendered_now = [results[k] for k in cache.computed]
     render_s = time.perf_counter() - render_start
@@ -212,13 +214,12 @@ def _virtual_capture(ctx: StageContext, params: CaptureParams) -> dict:
                                                [f.take for f in performance], log_json, brightness, n_frames,
                                                frame_times=frame_times)
     manifest.update(width=cameras[0].width, height=cameras[0].height)
-    (ctx.out / "manifest.json").write_text(json.dumps(manifest, indent=1))
+    out.write_manifest(manifest)
     lost_images = n_frames * len(cameras) - sum(r["images"] for r in results)
 
     subject = make_subject(ctx.subject, params.identity_seed, texture_size=params.texture_size)
     names, scan_verts, faces = scan_session(subject)
-    (ctx.out / "scans").mkdir()
-    np.savez_compressed(ctx.out / "scans" / "scans.npz", names=np.array(names), vertices=scan_verts, faces=faces)
+    out.write_scans(names, scan_verts, faces)
 
     calibration_metrics = _calibration_takes(ctx, params, cameras, truth) if params.calibration_takes else {}
 
@@ -290,7 +291,7 @@ def _calibration_takes(ctx: StageContext, params: CaptureParams, cameras, truth:
     plan = plan_calibration_takes(cameras, bars, take_params, board, spheres,
                                   board_cameras=[board_cameras[c.name] for c in cameras], mirror_cameras=mirror_cameras)
     write_take_specs(plan, ctx.out, truth)
-    writer = TakeWriter(ctx.out / "calib")
+    writer = TakeWriter(CaptureOutput(ctx.out).calib_dir)
     # One entry per camera and take: a rerun (more frames, another performance) renders none of them again.
     cache = stage_item_cache(ctx)
     cache.map(ctx.executor, render_take_item, plan.items, calibration_item_key, desc="calibration takes",
@@ -307,38 +308,36 @@ def _write_truth(truth: Path, rig: RigConfig, cameras, subject, performance, lit
                  settings, params: CaptureParams) -> None:
     from dataclasses import asdict
 
-    from scene.camera import save_cameras
     from stages.capture.virtual import frame_state_arrays
 
-    save_cameras(truth / "cameras.json", cameras)
+    out = CaptureTruth(truth)
+    out.write_cameras(cameras)
     bars = []
     for bar in rig.light_bars():
         entry = bar.to_dict()
         entry["radiant_intensity"] = bar.intensity * settings.bar_intensity_scale
         bars.append(entry)
-    (truth / "bars.json").write_text(json.dumps({"bars": bars, "intensity_scale": settings.bar_intensity_scale},
-                                                indent=1))
+    out.write_bars({"bars": bars, "intensity_scale": settings.bar_intensity_scale}, indent=1)
     arrays = frame_state_arrays(performance)
     received = np.zeros((len(cameras), len(performance)), np.int32)  # [C, F] images delivered per trigger
     for c, stream in enumerate(streams):
         np.add.at(received[c], np.asarray(stream, int), 1)
-    np.savez_compressed(truth / "frames.npz", **arrays, expression_names=np.array(subject.rig.expression_names),
+    out.write_frames(**arrays, expression_names=np.array(subject.rig.expression_names),
                         received=received,
                         lit=np.array(["none" if x is None else str(x) for x in lit_per_pulse]))
     verts = np.stack([subject.vertices(f.expression_weights) for f in performance]).astype(np.float32)
-    np.savez(truth / "meshes.npz", vertices=verts, faces=subject.rig.triangles)  # float noise: zlib gains little
-    (truth / "lights_per_pulse.json").write_text(json.dumps(list(lit_per_pulse)))
-    (truth / "studio.json").write_text(json.dumps({
+    out.write_meshes(verts, subject.rig.triangles)
+    out.write_lights_per_pulse(list(lit_per_pulse))
+    out.write_studio({
         "subject": subject.name, "identity_seed": subject.seed, "texture_size": params.texture_size,
         "performance_seed": params.identity_seed if params.performance_seed is None else params.performance_seed,
         "identity_coeffs": subject.identity_coeffs.tolist(), "skin_albedo": subject.skin_albedo.tolist(),
         "iris_albedo": subject.iris_albedo.tolist(), "render_settings": asdict(settings),
         "drop_frames": list(params.drop_frames), "controller_missed_pulses": list(params.controller_missed_pulses),
-    }, indent=1))
+    })
 
 
 def _write_previews(ctx: StageContext, params: CaptureParams, manifest: dict) -> None:
-    from scene.image_io import read_exr
     from stages.capture.previews import contact_sheet, strip
 
     ok = [f for f in manifest["frames"] if f["status"] == "ok"]
@@ -348,14 +347,15 @@ def _write_previews(ctx: StageContext, params: CaptureParams, manifest: dict) ->
         return
     cams = manifest["cameras"]
     pick = full_on[0]["index"]
-    images = [read_exr(ctx.out / "frames" / cam / f"{pick:06d}.exr")[..., :3] for cam in cams]
+    out = CaptureOutput(ctx.out)
+    images = [out.frame(cam, pick)[..., :3] for cam in cams]
     exposure = 0.6 / max(float(np.percentile(np.concatenate([i.reshape(-1, 3) for i in images]), 99)), 1e-6)
-    contact_sheet(ctx.out / "contact_sheet.png", images, [f"{c} #{pick} F" for c in cams], exposure=exposure)
+    contact_sheet(out.contact_sheet_path, images, [f"{c} #{pick} F" for c in cams], exposure=exposure)
     cam = params.strip_camera if params.strip_camera in cams else cams[0]
     chosen = ok[:params.strip_frames]
-    strip_images = [read_exr(ctx.out / "frames" / cam / f"{f['index']:06d}.exr")[..., :3] for f in chosen]
+    strip_images = [out.frame(cam, f["index"])[..., :3] for f in chosen]
     labels = [f"{'F' if f['light'] == 'F' else 'bar ' + str(f['light'])} #{f['index']}" for f in chosen]
-    strip(ctx.out / "strip.png", strip_images, labels, full_on_exposure=exposure, olat_exposure=exposure * 10)
+    strip(out.strip_path, strip_images, labels, full_on_exposure=exposure, olat_exposure=exposure * 10)
 
 
 STAGE = Stage(

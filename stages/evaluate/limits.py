@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-LIMITS_FILE = "limits.json"
+from stages.evaluate.output import LIMITS_FILE, EvaluateOutput  # noqa: F401  (LIMITS_FILE: re-exported)
 
 
 @dataclass(frozen=True)
@@ -138,5 +138,5 @@ def workspace_light_warnings(workspace, point_lights_head=(), orbit_radius_m: fl
     ref = workspace.read_ref("evaluate")
     if ref is None or "out" not in ref.outputs:
         return []
-    return requested_light_warnings(Path(workspace.object_path(ref.outputs["out"])) / LIMITS_FILE,
+    return requested_light_warnings(EvaluateOutput(workspace.object_path(ref.outputs["out"])).limits_path,
                                     point_lights_head, orbit_radius_m, orbit_frames)

@@ -31,21 +31,23 @@ Reads ground truth (``capture.truth``); nothing reads its output back into a pro
 
 from __future__ import annotations
 
-import json
 import math
 import time
-from pathlib import Path
 
 import numpy as np
 from pydantic import Field
 
 from pipeline.errors import InputError
 from pipeline.stage import Stage, StageContext, StageParams
+from stages.capture.output import CaptureOutput, CaptureTruth
 from stages.evaluate import charts
 from stages.evaluate.measure import sweep_psnr
-from stages.evaluate.limits import LIMITS_FILE, LightLimits, write_limits
+from stages.evaluate.limits import LightLimits, write_limits
+from stages.evaluate.output import EvaluateOutput
 from stages.evaluate.sweeps import (Crossing, angle_to_nearest_deg, azimuth_limit_deg, extrapolation_limit_deg,
                                     orbit_directions, scale_limits, unit)
+from stages.track.output import TrackOutput
+from stages.train.output import TrainOutput
 
 
 class EvaluateParams(StageParams):
@@ -73,31 +75,24 @@ class EvaluateParams(StageParams):
     steps_per_ray: int = Field(0, ge=0, description="Raymarch steps per ray (0 = the model's own).")
 
 
-def _read_npz(path: Path, what: str):
-    try:
-        return np.load(path)
-    except (OSError, ValueError) as err:
-        raise InputError(f"evaluate: cannot read {path} ({err}); re-run the stage that writes {what}") from err
-
-
-def training_light_dirs(capture: Path, truth: Path, train: Path, centre_head: np.ndarray) -> np.ndarray:
+def training_light_dirs(capture: CaptureOutput, truth: CaptureTruth, train: TrainOutput,
+                        centre_head: np.ndarray) -> np.ndarray:
     """Unit head-space directions [L, 3] from ``centre_head`` to the lit bar of every training frame.
 
-    Training frames come from ``train/splits.json`` (all OLAT frames if it is missing); bar
+    Training frames come from the train stage's splits (all OLAT frames if it has none); bar
     centres and head poses are the studio's true ones, so the directions are what the
     model was actually shown.
     """
-    manifest = json.loads((capture / "manifest.json").read_text())
+    manifest = capture.manifest(keys=("frames",))
     frames = {int(f["index"]): f for f in manifest["frames"]}
-    splits_path = train / "splits.json"
-    if splits_path.is_file():
-        train_index = [int(i) for i in json.loads(splits_path.read_text())["train"]]
+    splits_path = train.splits_path
+    if train.has_splits():
+        train_index = [int(i) for i in train.splits()["train"]]
     else:
         train_index = sorted(i for i, f in frames.items() if f.get("light") not in ("F", None)
                              and f.get("status", "ok") == "ok")
-    bars = {int(b["id"]): np.asarray(b["center_world"], float)
-            for b in json.loads((truth / "bars.json").read_text())["bars"]}
-    poses = _read_npz(truth / "frames.npz", "capture.truth")
+    bars = {int(b["id"]): np.asarray(b["center_world"], float) for b in truth.bars()}
+    poses = truth.frames(keys=("index", "world_from_head_R", "world_from_head_t"))
     row = {int(i): k for k, i in enumerate(poses["index"])}
     dirs = []
     for i in train_index:
@@ -109,7 +104,7 @@ def training_light_dirs(capture: Path, truth: Path, train: Path, centre_head: np
         dirs.append(light_head - centre_head)
     if not dirs:
         raise InputError(f"evaluate: no training OLAT frames with a lit bar in {splits_path} / "
-                         f"{capture / 'manifest.json'}; re-run capture and train")
+                         f"{capture.manifest_path}; re-run capture and train")
     return unit(np.asarray(dirs))
 
 
@@ -173,22 +168,19 @@ def run(ctx: StageContext) -> None:
     from scene.view import ViewSpec
 
     params: EvaluateParams = ctx.params
-    capture, truth, train, track = (ctx.input(n) for n in ("capture", "capture.truth", "train", "track"))
-    model_dir = train / "models" / "ours"
+    capture, truth = CaptureOutput(ctx.input("capture")), CaptureTruth(ctx.input("capture.truth"))
+    train, track = TrainOutput(ctx.input("train")), TrackOutput(ctx.input("track"))
+    model, _meta = train.model(load_trained)
     try:
-        model, _meta = load_trained(model_dir)
-    except (OSError, KeyError, ValueError, RuntimeError) as err:
-        raise InputError(f"{model_dir}: cannot load the trained head ({err}); re-run the train stage") from err
-    try:
-        subject = subject_from_truth(truth)
+        subject = subject_from_truth(truth.studio())
     except ValueError as err:
-        raise InputError(f"evaluate: {err}") from err
-    meshes = _read_npz(track / "meshes.npz", "track")
+        raise truth.malformed(truth.studio_path, err) from err
+    meshes = track.meshes(keys=("vertices",))
     mesh_index = [int(i) for i in meshes["index"]] if "index" in meshes else list(range(len(meshes["vertices"])))
-    truth_frames = _read_npz(truth / "frames.npz", "capture.truth")
+    truth_frames = truth.frames(keys=("weights",))
     truth_row = {int(i): k for k, i in enumerate(truth_frames["index"])} if "index" in truth_frames else \
         {k: k for k in range(len(truth_frames["weights"]))}
-    splits = json.loads((train / "splits.json").read_text()) if (train / "splits.json").is_file() else {}
+    splits = train.splits() if train.has_splits() else {}
     common = [i for i in mesh_index if i in truth_row]
     if not common:
         raise InputError("evaluate: no frame is both in track/meshes.npz and capture.truth/frames.npz; "
@@ -242,7 +234,7 @@ def run(ctx: StageContext) -> None:
     azimuth = azimuth_limit_deg(orbits["horizontal"][0], orbits["horizontal"][2], light_threshold)
 
     # Expression magnitude.
-    scans = _read_npz(capture / "scans" / "scans.npz", "capture (scans/scans.npz)")
+    scans = capture.scans(keys=("vertices",))
     neutral = np.asarray(scans["vertices"][0], np.float32)
     tracked = vertices[mesh_index.index(held_out)]
     if tracked.shape != neutral.shape:
@@ -295,34 +287,34 @@ def _write_outputs(ctx: StageContext, params: EvaluateParams, orbits: dict, limi
                    centre: np.ndarray, train_dirs: np.ndarray, scales: np.ndarray, expr_psnr: np.ndarray,
                    expr_threshold: float, low: Crossing, high: Crossing, samples: dict, strip_truth: list,
                    strip_pred: list) -> None:
-    out = ctx.out
+    out = EvaluateOutput(ctx.out)
     limits = LightLimits(limit.x, limit.censored, light_threshold, tuple(float(v) for v in centre),
                          tuple(tuple(float(v) for v in d) for d in train_dirs))
-    write_limits(out / LIMITS_FILE, limits, {
+    write_limits(out.limits_path, limits, {
         "failed_at_start": limit.failed_at_start,
         "light_orbit_azimuth_limit_deg": samples["light_orbit_azimuth_limit_deg"],
         "expression_scale_limit_low": low.x, "expression_scale_limit_high": high.x,
         "expression_scale_censored_low": low.censored, "expression_scale_censored_high": high.censored,
         "expression_threshold_db": expr_threshold})
-    (out / "sweeps.json").write_text(json.dumps(samples, indent=1) + "\n", encoding="utf-8")
+    out.write_sweeps(samples)
     # No per-point labels: the report annotates every labelled point and an orbit has dozens.
     points = [{"x": ft, "y": p, "series": f"{plane} orbit"}
               for plane, (_angles, from_train, psnr_db) in orbits.items()
               for ft, p in zip(from_train, psnr_db)]
     points.append({"x": limit.x, "y": light_threshold, "series": "limit", "chosen": True,
                    "label": f"limit {limit.x:.0f} deg" + (" (not reached)" if limit.censored else "")})
-    charts.write_series(out / "tradeoffs" / "light_orbit.json",
+    charts.write_series(out.light_orbit_series_path,
                         f"Point light orbit at {params.orbit_radius_m:g} m: PSNR vs angle from the training lights",
                         "angle from the nearest training light (deg)", "PSNR (dB)", points)
     points = [{"x": s, "y": p, "series": "held-out frame", "label": f"x{s:g}"} for s, p in zip(scales, expr_psnr)]
     points += [{"x": c.x, "y": expr_threshold, "series": "limit", "chosen": True, "label": f"{side} limit x{c.x:.2f}"}
                for side, c in (("low", low), ("high", high))]
-    charts.write_series(out / "tradeoffs" / "expression_scale.json", "Expression magnitude: PSNR vs weight scale",
+    charts.write_series(out.expression_series_path, "Expression magnitude: PSNR vs weight scale",
                         "blendshape weight scale", "PSNR (dB)", points)
-    charts.light_orbit_png(out / "light_orbit.png", orbits, light_threshold, limit)
-    charts.expression_png(out / "expression_scale.png", scales, expr_psnr, expr_threshold, low, high)
+    charts.light_orbit_png(out.light_orbit_png_path, orbits, light_threshold, limit)
+    charts.expression_png(out.expression_png_path, scales, expr_psnr, expr_threshold, low, high)
     if strip_truth:
-        charts.strip_png(out / "orbit_strip.png", strip_truth, strip_pred)
+        charts.strip_png(out.orbit_strip_path, strip_truth, strip_pred)
 
 
 STAGE = Stage(

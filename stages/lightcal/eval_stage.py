@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
-import json
-
 import numpy as np
 
 from pipeline.errors import InputError
 from pipeline.stage import Stage, StageContext, StageParams
+from stages.capture.output import CaptureTruth
+from stages.lightcal.output import LightcalOutput
 
 
 class LightcalEvalParams(StageParams):
@@ -41,11 +41,9 @@ def bar_errors(est: list[dict], true: list[dict]) -> dict[str, float]:
 
 def run(ctx: StageContext) -> None:
     """Compare ``lightcal/bars.json`` with ``capture.truth/bars.json``."""
-    paths = (ctx.input("lightcal") / "bars.json", ctx.input("capture.truth") / "bars.json")
-    try:
-        est, true = (json.loads(p.read_text())["bars"] for p in paths)
-    except (OSError, ValueError, KeyError) as err:
-        raise InputError(f"cannot read bars ({err}); re-run lightcal / capture") from err
+    placed, truth = LightcalOutput(ctx.input("lightcal")), CaptureTruth(ctx.input("capture.truth"))
+    paths = (placed.bars_path, truth.bars_path)
+    est, true = placed.bars(), truth.bars()
     metrics = bar_errors(est, true)
     if metrics["bars_compared"] == 0:
         raise InputError(f"{paths[0]}: no bar in common with the ground truth {paths[1]}")

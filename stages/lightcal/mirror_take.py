@@ -19,6 +19,7 @@ import numpy as np
 from pipeline.errors import InputError
 from scene.camera import Camera
 from scene.image_io import read_exr
+from stages.capture.output import CaptureOutput
 from stages.lightcal.spheres import background_and_noise
 
 
@@ -34,13 +35,12 @@ def read_grey(path: Path) -> np.ndarray:
 class MirrorTake:
     """The mirror take of one capture, image by image (``image(cam, "room")``, ``image(cam, "bar07")``)."""
 
-    def __init__(self, capture: Path, use_windows: bool = True) -> None:
-        self.root = capture / "calib" / "mirror"
-        self.roi_root = capture / "calib" / "mirror_roi"
+    def __init__(self, capture: CaptureOutput, use_windows: bool = True) -> None:
+        self.capture = capture
         self.windows: dict[str, dict[str, list[dict]]] = {}
         self.native_size: tuple[int, int] | None = None
-        index_path = capture / "calib" / "mirror_roi.json"
-        if use_windows and index_path.is_file():
+        index_path = capture.mirror_roi_index_path
+        if use_windows and capture.has_mirror_roi_index():
             try:
                 index = json.loads(index_path.read_text())
                 self.native_size = (int(index["width"]), int(index["height"]))
@@ -67,7 +67,7 @@ class MirrorTake:
             w, h = self.native_size
             scaled = cams[name].scaled(w / cams[name].width)
             if (scaled.width, scaled.height) != (w, h):
-                raise InputError(f"{self.roi_root.parent / 'mirror_roi.json'}: native size {w}x{h}, but camera "
+                raise InputError(f"{self.capture.mirror_roi_index_path}: native size {w}x{h}, but camera "
                                  f"{name} is calibrated at {cams[name].width}x{cams[name].height} (another aspect "
                                  "ratio); the windows do not match the camera")
             out[name] = scaled
@@ -75,7 +75,7 @@ class MirrorTake:
 
     def image(self, cam_name: str, name: str) -> tuple[np.ndarray, float, float] | None:
         """(grey image [H, W], background, noise sigma) of ``calib/mirror/<cam>/<name>.exr``; None if absent."""
-        path = self.root / cam_name / f"{name}.exr"
+        path = self.capture.mirror_image_path(cam_name, f"{name}.exr")
         if not path.is_file():
             return None
         full = read_grey(path)
@@ -85,7 +85,7 @@ class MirrorTake:
         w, h = self.native_size
         canvas = np.full((h, w), bg)
         for win in self.windows[cam_name].get(name, []):
-            wpath = self.roi_root / cam_name / str(win["file"])
+            wpath = self.capture.mirror_roi_image_path(cam_name, str(win["file"]))
             x0, y0, x1, y1 = (int(v) for v in win["box"])
             crop = read_grey(wpath)
             if crop.shape != (y1 - y0, x1 - x0) or x0 < 0 or y0 < 0 or x1 > w or y1 > h:

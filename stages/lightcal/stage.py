@@ -21,7 +21,6 @@ normal_world, plus per-bar fit statistics), ``spheres.json`` and ``report.json``
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Literal
 
@@ -30,9 +29,12 @@ from pydantic import Field
 
 from pipeline.errors import InputError
 from pipeline.stage import Stage, StageContext, StageParams
-from scene.camera import Camera, load_cameras
+from scene.camera import Camera
+from stages.calibrate.output import CalibrateOutput
+from stages.capture.output import CaptureOutput
 from stages.lightcal.highlights import Highlight, find_highlight, reflect_ray, reflect_rays
 from stages.lightcal.mirror_take import MirrorTake, read_grey
+from stages.lightcal.output import LightcalOutput
 from stages.lightcal.solve import conditioning, ray_distances, ray_line_distances, robust_closest_point
 from stages.lightcal.spheres import (Silhouette, cone_centre, find_silhouettes,
                                      group_estimates, refine_centre)
@@ -70,14 +72,12 @@ class LightcalParams(StageParams):
         False, description="Leave out (with a warning) bars that cannot be placed instead of failing.")
 
 
-def _load_mirror_spec(capture: Path) -> dict:
-    path = capture / "calib" / "mirror.json"
+def _load_mirror_spec(capture: CaptureOutput) -> dict:
+    spec = capture.mirror_spec()
     try:
-        spec = json.loads(path.read_text())
         float(spec["radius_m"])
-    except (OSError, ValueError, KeyError, TypeError) as err:
-        raise InputError(f"{path}: cannot read the mirror-sphere spec ({err}); the capture must hold "
-                         "calib/mirror.json with radius_m and count") from err
+    except (KeyError, ValueError, TypeError) as err:
+        raise capture.malformed(capture.mirror_spec_path, f"no mirror-sphere radius_m ({err!r})") from err
     return spec
 
 
@@ -85,14 +85,14 @@ def _grey(path: Path) -> np.ndarray:
     return read_grey(path)
 
 
-def _at_mirror_resolution(cams: dict[str, Camera], capture: Path, image_name: str) -> dict[str, Camera]:
+def _at_mirror_resolution(cams: dict[str, Camera], capture: CaptureOutput, image_name: str) -> dict[str, Camera]:
     """The calibrated cameras at the resolution of their mirror take (it may be shot at native resolution).
 
     ``Camera.scaled`` keeps the pixel-centre convention, so this is exact, not an approximation.
     """
     out = {}
     for name, cam in cams.items():
-        path = capture / "calib" / "mirror" / name / image_name
+        path = capture.mirror_image_path(name, image_name)
         if not path.is_file():
             out[name] = cam
             continue
@@ -108,7 +108,7 @@ def _at_mirror_resolution(cams: dict[str, Camera], capture: Path, image_name: st
     return out
 
 
-def locate_spheres(cams: dict[str, Camera], capture: Path, image_name: str, radius_m: float, count: int, log,
+def locate_spheres(cams: dict[str, Camera], capture: CaptureOutput, image_name: str, radius_m: float, count: int, log,
                    take: MirrorTake | None = None
                    ) -> tuple[list[np.ndarray], dict[tuple[str, int], Silhouette], list[float]]:
     """Ball centres in world space and, per (camera, ball), the silhouette seen.
@@ -121,7 +121,7 @@ def locate_spheres(cams: dict[str, Camera], capture: Path, image_name: str, radi
         loaded = take.image(name, Path(image_name).stem)
         if loaded is None:
             log.warning("%s: no silhouette image %s; camera not used for the balls", name,
-                        capture / "calib" / "mirror" / name / image_name)
+                        capture.mirror_image_path(name, image_name))
             continue
         grey, bg, sigma = loaded
         sils, notes = find_silhouettes(grey, name, noise=(bg, sigma))
@@ -153,11 +153,8 @@ def locate_spheres(cams: dict[str, Camera], capture: Path, image_name: str, radi
 def run(ctx: StageContext) -> None:
     """Place every LED bar (see the module docstring)."""
     params: LightcalParams = ctx.params  # type: ignore[assignment]
-    capture = ctx.input("capture")
-    try:
-        cams = {c.name: c for c in load_cameras(ctx.input("calibrate") / "cameras.json")}
-    except ValueError as err:
-        raise InputError(str(err)) from err
+    capture = CaptureOutput(ctx.input("capture"))
+    cams = {c.name: c for c in CalibrateOutput(ctx.input("calibrate")).cameras()}
     spec = _load_mirror_spec(capture)
     radius = float(spec["radius_m"])
     image_name = str(spec.get("silhouette_image", "room.exr"))
@@ -168,10 +165,9 @@ def run(ctx: StageContext) -> None:
         ctx.log.info("mirror take: native %dx%d windows for %d of %d cameras", *take.native_size, windowed, len(cams))
     centres, sil_of, sphere_rms = locate_spheres(cams, capture, image_name, radius, int(spec.get("count", 0)), ctx.log,
                                                  take)
-    bar_ids = [int(b) for b in spec.get("bars", [])] or sorted(
-        {int(p.stem[3:]) for p in (capture / "calib" / "mirror").glob("*/bar*.exr")})
+    bar_ids = [int(b) for b in spec.get("bars", [])] or capture.mirror_bar_ids()
     if not bar_ids:
-        raise InputError(f"{capture / 'calib' / 'mirror'}: no bar images (bar<b:02d>.exr); the mirror take is missing")
+        raise InputError(f"{capture.mirror_dir}: no bar images (bar<b:02d>.exr); the mirror take is missing")
 
     # per camera and ball: the centre used to reflect (optionally on the camera's own silhouette axis)
     centre_for: dict[tuple[str, int], np.ndarray] = {}
@@ -203,11 +199,10 @@ def run(ctx: StageContext) -> None:
     for entry in bars_out:
         n = head - np.asarray(entry["center_world"])
         entry["normal_world"] = (n / np.linalg.norm(n)).tolist()
-    (ctx.out / "bars.json").write_text(json.dumps({"bars": bars_out, "missing": [int(f.split(":")[0][4:])
-                                                                                  for f in failures]}, indent=1))
-    (ctx.out / "spheres.json").write_text(json.dumps(
-        {"radius_m": radius, "centers_world": [c.tolist() for c in centres], "outline_rms_m": sphere_rms}, indent=1))
-    (ctx.out / "report.json").write_text(json.dumps(report, indent=1))
+    out = LightcalOutput(ctx.out)
+    out.write_bars(bars_out, [int(f.split(":")[0][4:]) for f in failures])
+    out.write_spheres({"radius_m": radius, "centers_world": [c.tolist() for c in centres], "outline_rms_m": sphere_rms})
+    out.write_report(report)
     residuals = [e["residual_mm"] for e in bars_out]
     ctx.metrics["residual_mm_mean"] = float(np.mean(residuals)) if residuals else float("nan")
     ctx.metrics["residual_mm_max"] = float(np.max(residuals)) if residuals else float("nan")

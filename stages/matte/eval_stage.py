@@ -10,9 +10,7 @@ MAE show the worst images. ``per_image.json`` lists every image's figures.
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -20,8 +18,10 @@ from pydantic import Field
 
 from pipeline.errors import InputError
 from pipeline.stage import Stage, StageContext, StageParams
+from stages.capture.output import CaptureOutput, CaptureTruth
 from stages.matte.baseline import BaselineConfig, baseline_matte
 from stages.matte.measures import all_measures
+from stages.matte.output import MatteOutput, write_per_image
 
 
 class MatteEvalParams(StageParams):
@@ -37,29 +37,24 @@ class CameraJob:
 
     cam: str
     frames: tuple[tuple[int, bool], ...]  # (index, is_olat)
-    matte_dir: Path
-    capture_dir: Path
-    truth_dir: Path
+    matte: MatteOutput
+    capture: CaptureOutput
+    truth: CaptureTruth
     baseline: BaselineConfig
 
 
 def evaluate_camera(job: CameraJob) -> list[dict[str, Any]]:
     """Per-image measures of the stage's matte and the baseline's for one camera."""
-    from scene.image_io import read_exr, read_png16
-
     records = []
     for index, is_olat in job.frames:
-        truth_path = job.truth_dir / "mattes" / job.cam / f"{index:06d}.png"
-        matte_path = job.matte_dir / "mattes" / job.cam / f"{index:06d}.png"
-        image_path = job.capture_dir / "frames" / job.cam / f"{index:06d}.exr"
-        if not (truth_path.is_file() and image_path.is_file()):
+        if not (job.truth.matte_path(job.cam, index).is_file() and job.capture.has_frame(job.cam, index)):
             continue  # dropped frame: no image, nothing to matte
-        if not matte_path.is_file():
-            raise InputError(f"{matte_path}: camera {job.cam} frame {index} has an image but no matte; "
-                             "re-run the matte stage")
-        truth = read_png16(truth_path)
-        alpha = read_png16(matte_path)
-        baseline = baseline_matte(read_exr(image_path)[..., :3], job.baseline)
+        if not job.matte.has_matte(job.cam, index):
+            raise job.matte.error(job.matte.matte_path(job.cam, index),
+                                  f"camera {job.cam} frame {index} has an image but no matte", state="is missing")
+        truth = job.truth.matte(job.cam, index)
+        alpha = job.matte.matte(job.cam, index)
+        baseline = baseline_matte(job.capture.frame(job.cam, index)[..., :3], job.baseline)
         record = {"cam": job.cam, "index": index, "olat": is_olat, **all_measures(alpha, truth)}
         record.update({f"baseline_{k}": v for k, v in all_measures(baseline, truth).items()})
         records.append(record)
@@ -86,20 +81,18 @@ def summarise(records: list[dict[str, Any]]) -> dict[str, float]:
 def run(ctx: StageContext) -> None:
     """Measure the mattes against ground truth, beside the baseline."""
     params: MatteEvalParams = ctx.params  # type: ignore[assignment]
-    capture, truth, matte = ctx.input("capture"), ctx.input("capture.truth"), ctx.input("matte")
-    manifest_path = capture / "manifest.json"
-    if not manifest_path.is_file():
-        raise InputError(f"{manifest_path} is missing; re-run the capture stage")
-    manifest = json.loads(manifest_path.read_text())
+    capture, truth = CaptureOutput(ctx.input("capture")), CaptureTruth(ctx.input("capture.truth"))
+    matte = MatteOutput(ctx.input("matte"))
+    manifest = capture.manifest(keys=("frames", "cameras"))
     frames = tuple((int(f["index"]), f.get("light") != "F") for f in manifest["frames"][::params.frame_stride]
                    if f.get("status", "ok") != "dropped")
     jobs = [CameraJob(cam, frames, matte, capture, truth, params.baseline) for cam in manifest["cameras"]]
     records = [r for per_cam in ctx.executor.map(evaluate_camera, jobs, desc="cameras") for r in per_cam]
     if not records:
-        raise InputError(f"{truth / 'mattes'}: no ground-truth matte matches a captured image; "
+        raise InputError(f"{truth.mattes_dir}: no ground-truth matte matches a captured image; "
                          "is capture.truth from the same capture?")
     ctx.metrics.update(summarise(records))
-    (ctx.out / "per_image.json").write_text(json.dumps(records, indent=0))
+    write_per_image(ctx.out, records)
 
 
 STAGE = Stage(name="matte_eval", inputs=("matte", "capture", "capture.truth"), params=MatteEvalParams, run=run,

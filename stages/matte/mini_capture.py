@@ -1,17 +1,18 @@
 """A small capture folder rendered by the virtual studio, for the matte tests and benchmark.
 
-It follows the ``capture`` / ``capture.truth`` contracts (docs/design.md) closely enough for the
-matte stages: ``manifest.json``, ``frames/<cam>/<index:06d>.exr`` and, in the truth folder,
-``mattes/<cam>/<index:06d>.png``. The light pattern is the studio's, ``F, O, O, F, ...``;
+It follows the ``capture`` / ``capture.truth`` contracts (``stages.capture.output``) closely
+enough for the matte stages: the manifest, the frames and, in the truth folder, the mattes.
+The light pattern is the studio's, ``F, O, O, F, ...``;
 optionally some frames show an empty studio (no person: backdrop and sensor noise only).
 """
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
+
+from stages.capture.output import CaptureOutput, CaptureTruth
 
 
 def render_mini_capture(capture_dir: Path, truth_dir: Path, identity_seed: int = 1, image_scale: float = 0.125,
@@ -23,6 +24,7 @@ def render_mini_capture(capture_dir: Path, truth_dir: Path, identity_seed: int =
     from scene.image_io import write_exr, write_png16
     from scene.rig import default_rig
 
+    capture, truth = CaptureOutput(capture_dir), CaptureTruth(truth_dir)
     rig = default_rig()
     cameras = [c for c in rig.cameras_at(image_scale) if c.name in camera_names]
     subject = make_subject(f"mini-{identity_seed}", seed=identity_seed, texture_size=256)
@@ -38,9 +40,8 @@ def render_mini_capture(capture_dir: Path, truth_dir: Path, identity_seed: int =
             olat_cursor += 1
         frames.append({"index": index, "take": "speech", "time_s": index / rig.fps, "light": light, "status": "ok"})
         for cam in cameras:
-            folder, truth_folder = capture_dir / "frames" / cam.name, truth_dir / "mattes" / cam.name
-            folder.mkdir(parents=True, exist_ok=True)
-            truth_folder.mkdir(parents=True, exist_ok=True)
+            capture.frames_dir(cam.name).mkdir(parents=True, exist_ok=True)
+            truth.matte_path(cam.name, index).parent.mkdir(parents=True, exist_ok=True)
             if index in empty_frames:
                 rng = np.random.default_rng([identity_seed, index])
                 rgb = np.maximum(rng.normal(0.0, settings.read_noise, (cam.height, cam.width, 3)), 0.0)
@@ -48,11 +49,11 @@ def render_mini_capture(capture_dir: Path, truth_dir: Path, identity_seed: int =
             else:
                 result = studio.render(performance[index], cam, light)
                 rgb, alpha = result.rgb, result.alpha
-            write_exr(folder / f"{index:06d}.exr", rgb.astype(np.float32), half=False)
-            write_png16(truth_folder / f"{index:06d}.png", alpha)
+            write_exr(capture.frame_path(cam.name, index), rgb.astype(np.float32), half=False)
+            write_png16(truth.matte_path(cam.name, index), alpha)
     manifest = {"subject": f"mini-{identity_seed}", "fps": rig.fps, "width": cameras[0].width,
                 "height": cameras[0].height, "cameras": [c.name for c in cameras], "bars": len(rig.light_bars()),
                 "takes": ["speech"], "frames": frames}
     capture_dir.mkdir(parents=True, exist_ok=True)
-    (capture_dir / "manifest.json").write_text(json.dumps(manifest, indent=1))
+    capture.write_manifest(manifest)
     return manifest

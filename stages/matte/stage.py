@@ -48,7 +48,6 @@ Output::
 
 from __future__ import annotations
 
-import json
 import time
 from collections import OrderedDict
 from pathlib import Path
@@ -58,13 +57,14 @@ import numpy as np
 from pydantic import Field
 
 from pipeline.devices import DeviceChoice, resolve_device
-from pipeline.errors import InputError
 from pipeline.stage import Stage, StageContext, StageParams
+from stages.capture.output import CaptureOutput
 from stages.matte.baseline import BaselineConfig
 from stages.matte.contact_sheet import write_contact_sheet
 from stages.matte.inputs import (bright_level, camera_reference, is_full_on, nearest_full_on, network_input,
                                  olat_scale)
 from stages.matte.model_cache import cache_key, load_or_train, training_code_digest
+from stages.matte.output import MatteOutput
 from stages.matte.studio_data import StudioDataConfig, collect, identity_jobs, render_identity
 from stages.matte.training import InputConfig, SocConfig, TrainConfig, soc_adapt, train_supervised
 
@@ -95,41 +95,29 @@ class MatteParams(StageParams):
 TRAINING_MODULES = ("stages.matte.training", "stages.matte.studio_data")
 
 
-def _read_manifest(capture: Path) -> dict[str, Any]:
-    path = capture / "manifest.json"
-    if not path.is_file():
-        raise InputError(f"{path} is missing: the capture object has no manifest; re-run the capture stage")
-    manifest = json.loads(path.read_text())
-    for key in ("cameras", "frames", "width", "height"):
-        if key not in manifest:
-            raise InputError(f"{path} has no '{key}' key; re-run the capture stage")
-    return manifest
+def _read_manifest(capture: CaptureOutput) -> dict[str, Any]:
+    return capture.manifest(keys=("cameras", "frames", "width", "height"))
 
 
 class FrameReader:
     """Reads a camera's linear frames, keeping the recent ones (guides are reused by 2 OLAT frames)."""
 
-    def __init__(self, capture: Path, cam: str, keep: int = 8) -> None:
-        self.folder, self.cam, self.keep = capture / "frames" / cam, cam, keep
+    def __init__(self, capture: CaptureOutput, cam: str, keep: int = 8) -> None:
+        self.capture, self.cam, self.keep = capture, cam, keep
         self._cache: OrderedDict[int, np.ndarray] = OrderedDict()
 
     def path(self, index: int) -> Path:
-        return self.folder / f"{index:06d}.exr"
+        return self.capture.frame_path(self.cam, index)
 
     def exists(self, index: int) -> bool:
         return self.path(index).is_file()
 
     def read(self, index: int) -> np.ndarray:
         """The frame [H, W, 3] float32 linear."""
-        from scene.image_io import read_exr
-
         if index in self._cache:
             self._cache.move_to_end(index)
             return self._cache[index]
-        path = self.path(index)
-        if not path.is_file():
-            raise InputError(f"{path}: camera {self.cam} frame {index} is missing; re-run the capture stage")
-        image = read_exr(path)[..., :3].astype(np.float32)
+        image = self.capture.frame(self.cam, index)[..., :3].astype(np.float32)
         self._cache[index] = image
         while len(self._cache) > self.keep:
             self._cache.popitem(last=False)
@@ -147,7 +135,7 @@ class CameraInputs:
     ``statistics_frames``: only F frames with an index below it set the reference (None = all).
     """
 
-    def __init__(self, manifest: dict[str, Any], capture: Path, cam: str, inputs: InputConfig,
+    def __init__(self, manifest: dict[str, Any], capture: CaptureOutput, cam: str, inputs: InputConfig,
                  statistics_frames: int | None = None) -> None:
         self.reader = FrameReader(capture, cam)
         self.frames = usable_frames(manifest, self.reader)
@@ -278,7 +266,8 @@ def run(ctx: StageContext) -> None:
         import torch
 
         torch.set_num_threads(params.threads)
-    capture = ctx.input("capture")
+    capture = CaptureOutput(ctx.input("capture"))
+    out = MatteOutput(ctx.out)
     manifest = _read_manifest(capture)
     device = resolve_device(params.device, "matte.device")
     cameras = {cam: CameraInputs(manifest, capture, cam, params.train.inputs, params.statistics_frames)
@@ -305,11 +294,11 @@ def run(ctx: StageContext) -> None:
     jobs = inference_items(cameras, params, device, model_dir, model_digest)
     written: dict[str, dict[int, Path]] = {cam: {} for cam in cameras}
     for cam in cameras:
-        (ctx.out / "mattes" / cam).mkdir(parents=True, exist_ok=True)
+        out.mattes_dir(cam).mkdir(parents=True, exist_ok=True)
 
     def write(position: int, result: dict) -> float:
         cam, index, _ = jobs[position]
-        path = ctx.out / "mattes" / cam / f"{index:06d}.png"
+        path = out.matte_path(cam, index)
         write_png16(path, np.asarray(result["alpha_u16"], np.float64) / 65535.0)  # exact: the same 16-bit values
         written[cam][index] = path
         return float(result["seconds"])
@@ -329,8 +318,8 @@ def run(ctx: StageContext) -> None:
         ctx.metrics["images_per_second"] = cache.misses / seconds
     else:
         ctx.metrics["images_per_second"] = total / sum(item_seconds) if sum(item_seconds) > 0 else 0.0
-    write_contact_sheet(ctx.out / "contact_sheet.png", manifest, written, params.contact_sheet_frames)
-    (ctx.out / "model.json").write_text(json.dumps(record, indent=1, sort_keys=True, default=str))
+    write_contact_sheet(out.contact_sheet_path, manifest, written, params.contact_sheet_frames)
+    out.write_model_record(record)
 
 
 STAGE = Stage(name="matte", inputs=("capture",), params=MatteParams, run=run,

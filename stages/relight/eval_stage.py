@@ -15,7 +15,6 @@ Output: ``truth/<sequence>/<i:06d>.exr`` (the references), ``compare/<sequence>_
 
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 
@@ -24,11 +23,12 @@ import torch
 from pydantic import Field
 
 from avatar.metrics import exposure_scale, psnr, ssim
-from pipeline.errors import InputError
 from pipeline.stage import Stage, StageContext, StageParams
 from scene.camera import Camera
 from scene.envmap import read_envmap
-from scene.image_io import read_exr, write_exr, write_png_srgb
+from scene.image_io import write_exr, write_png_srgb
+from stages.capture.output import CaptureTruth
+from stages.relight.output import RelightEvalOutput, RelightOutput
 
 
 class RelightEvalParams(StageParams):
@@ -56,17 +56,18 @@ def run(ctx: StageContext) -> None:
                                               subject_from_truth)
 
     params: RelightEvalParams = ctx.params
-    relight, truth_dir = ctx.input("relight"), ctx.input("capture.truth")
+    relight, truth_out = RelightOutput(ctx.input("relight")), CaptureTruth(ctx.input("capture.truth"))
+    out = RelightEvalOutput(ctx.out)
+    manifest = relight.renders()
+    weights_all = truth_out.frames(keys=("weights",))["weights"]
     try:
-        manifest = json.loads((relight / "renders.json").read_text())
-        weights_all = np.load(truth_dir / "frames.npz")["weights"]
-        subject = subject_from_truth(truth_dir)
-    except (OSError, ValueError, KeyError) as err:
-        raise InputError(f"relight_eval: missing or unreadable input ({err}); re-run relight / capture") from err
+        subject = subject_from_truth(truth_out.studio())
+    except ValueError as err:
+        raise truth_out.malformed(truth_out.studio_path, err) from err
     # The relight stage drives the head with the first tracked mesh: capture frame 0.
     frame = frame_from_weights(weights_all[0])
     scores: dict[str, list[tuple[float, float]]] = {"envmap": [], "point": []}
-    (ctx.out / "compare").mkdir()
+    out.compare_dir.mkdir()
     for name, records in manifest.items():
         for rec in records[:params.frames_per_sequence]:
             kind = rec.get("kind")
@@ -78,16 +79,16 @@ def run(ctx: StageContext) -> None:
                 truth = render_envmap_truth(subject, frame, camera, envmap, params.truth_directions)
             else:
                 truth = render_point_truth(subject, frame, camera, np.asarray(rec["position"]), np.ones(3))
-            pred = read_exr(relight / name / "frames" / f"{rec['index']:06d}.exr")[..., :3]
+            pred = relight.frame(name, rec["index"])[..., :3]
             value_psnr, value_ssim, scale = compare_images(pred, truth.rgb, truth.alpha)
             scores[kind].append((value_psnr, value_ssim))
             if kind == "envmap":
                 ctx.metrics[f"envmap_{Path(rec['envmap']).stem}_psnr"] = value_psnr
-            (ctx.out / "truth" / name).mkdir(parents=True, exist_ok=True)
-            write_exr(ctx.out / "truth" / name / f"{rec['index']:06d}.exr", truth.rgb)
+            out.truth_path(name, rec["index"]).parent.mkdir(parents=True, exist_ok=True)
+            write_exr(out.truth_path(name, rec["index"]), truth.rgb)
             exposure = 0.8 / max(float(np.percentile(truth.rgb[truth.alpha > 0.5], 99))
                                  if (truth.alpha > 0.5).any() else 1.0, 1e-8)
-            write_png_srgb(ctx.out / "compare" / f"{name}_{rec['index']}.png",
+            write_png_srgb(out.compare_path(name, rec["index"]),
                            np.concatenate([truth.rgb, pred * scale], axis=1), exposure=exposure)
             ctx.log.info("%s frame %d: PSNR %.2f dB, SSIM %.3f", name, rec["index"], value_psnr, value_ssim)
     for kind, key in (("envmap", "envmap"), ("point", "pointlight")):

@@ -16,17 +16,16 @@ from pathlib import Path
 
 import numpy as np
 
+from stages.capture.output import CaptureOutput
+
 _IGNORED_COLUMNS = {"frame", "time", "timecode", "time_s", "blendshapecount", "index"}
 
 
-def load_actor_rig(scans_path: Path) -> tuple[list[str], np.ndarray, np.ndarray]:
-    """Pose names [K], neutral [V, 3] and offsets [K, V, 3] (metres) from ``scans.npz``."""
-    try:
-        data = np.load(scans_path)
-        names = [str(n) for n in data["names"]]
-        verts = np.asarray(data["vertices"], np.float64)
-    except (OSError, ValueError, KeyError) as err:
-        raise ValueError(f"{scans_path}: not a readable scan session ({err}); re-run the capture stage") from err
+def load_actor_rig(capture: CaptureOutput) -> tuple[list[str], np.ndarray, np.ndarray]:
+    """Pose names [K], neutral [V, 3] and offsets [K, V, 3] (metres) from the capture's scan session."""
+    data = capture.scans(keys=("names", "vertices"))
+    names = [str(n) for n in data["names"]]
+    verts = np.asarray(data["vertices"], np.float64)
     return names[1:], verts[0], verts[1:] - verts[0]
 
 

@@ -27,7 +27,6 @@ rerun renders only frames it has not rendered before (metrics ``frames_reused``,
 
 from __future__ import annotations
 
-import json
 import math
 import time
 import warnings
@@ -45,9 +44,13 @@ from pipeline.hashing import hash_path
 from pipeline.itemcache import stage_item_cache
 from pipeline.stage import Stage, StageContext, StageParams
 from scene.envmap import AdaptiveParams, BackMask, EnvMapError, EnvMapWarning, read_envmap
+from stages.capture.output import CaptureOutput
 from stages.relight import sequences as seq
+from stages.relight.output import RelightOutput
 from stages.relight.outputs import SequenceWriter
 from stages.relight.render import FrameItem, frame_key, render_frame
+from stages.track.output import TrackOutput
+from stages.train.output import TrainOutput
 
 
 ASSETS = Path(__file__).resolve().parents[2] / "assets" / "envmaps"
@@ -104,16 +107,12 @@ def load_inputs(ctx_inputs: dict[str, Path], params: RelightParams, device: str)
     """The trained model and its metadata, the default (first tracked) mesh and the driving meshes of novel expressions."""
     from avatar.io import load_trained
 
-    model_dir = ctx_inputs["train"] / "models" / "ours"
-    try:
-        model, meta = load_trained(model_dir, device)
-    except (OSError, KeyError, ValueError, RuntimeError) as err:
-        raise InputError(f"{model_dir}: cannot load the trained head ({err}); re-run the train stage") from err
-    meshes_path = ctx_inputs["track"] / "meshes.npz"
-    try:
-        default_mesh = np.asarray(np.load(meshes_path)["vertices"][0], np.float32)
-    except (OSError, KeyError, ValueError, IndexError) as err:
-        raise InputError(f"{meshes_path}: no tracked meshes ({err}); re-run the track stage") from err
+    model, meta = TrainOutput(ctx_inputs["train"]).model(lambda folder: load_trained(folder, device))
+    track = TrackOutput(ctx_inputs["track"])
+    vertices = track.meshes(keys=("vertices",))["vertices"]
+    if len(vertices) == 0:
+        raise track.malformed(track.meshes_path, "no tracked meshes")
+    default_mesh = np.asarray(vertices[0], np.float32)
     expressions = None
     if params.expressions_csv or params.expressions_obj_dir:
         expressions = _expression_meshes(ctx_inputs, params, default_mesh.shape[0])
@@ -128,7 +127,7 @@ def _expression_meshes(ctx_inputs: dict[str, Path], params: RelightParams, num_v
     try:
         if params.expressions_obj_dir:
             return read_obj_sequence(Path(params.expressions_obj_dir), num_vertices)
-        names, neutral, offsets = load_actor_rig(ctx_inputs["capture"] / "scans" / "scans.npz")
+        names, neutral, offsets = load_actor_rig(CaptureOutput(ctx_inputs["capture"]))
         rig = load_face_rig()
         weights = read_weights_csv(Path(params.expressions_csv), rig.expression_names)
         return meshes_from_weights(weights, rig.expression_deltas_m, neutral, offsets)
@@ -185,7 +184,8 @@ def render_sequence(ctx: StageContext, source: FrameSource, name: str, frames: l
     rendered before. Each frame is written as soon as it (and every frame before it) exists,
     and stored in the cache by the worker that rendered it, so an error keeps every frame done.
     """
-    writer = SequenceWriter(ctx.out / name, name, ctx.params.fps, ctx.log)
+    out = RelightOutput(ctx.out)
+    writer = SequenceWriter(out, name, ctx.params.fps, ctx.log)
     seconds, records = [], []
     manifest[name] = records
     cache = stage_item_cache(ctx)
@@ -202,7 +202,7 @@ def render_sequence(ctx: StageContext, source: FrameSource, name: str, frames: l
                   desc=f"{name} frames", gpu=source.device.startswith("cuda"), consume=write)
     finally:
         writer.finish()
-        (ctx.out / "renders.json").write_text(json.dumps(manifest, indent=1))
+        out.write_renders(manifest)
     cache.report(ctx, f"{name} frames")
     ctx.metrics["frames_reused"] = ctx.metrics.get("frames_reused", 0) + cache.hits
     ctx.metrics["frames_computed"] = ctx.metrics.get("frames_computed", 0) + cache.misses
@@ -218,8 +218,9 @@ def run(ctx: StageContext) -> None:
     steps = params.steps_per_ray or model.config.steps_per_ray
     # The network learnt normalised images; EXR outputs are in the capture's linear units.
     image_scale = float(meta.get("image_scale", 1.0))
-    model_dir = ctx.inputs["train"] / "models" / "ours"
-    source = FrameSource(model_dir, hash_path(model_dir), ctx.out / "meshes.npz", steps, params.light_batch,
+    model_dir = TrainOutput(ctx.inputs["train"]).model_dir()
+    out = RelightOutput(ctx.out)
+    source = FrameSource(model_dir, hash_path(model_dir), out.meshes_path, steps, params.light_batch,
                          image_scale, device)
 
     def render_spec(geometry, spec: seq.FrameSpec, method: RenderMethod = "voxel_sum"):
@@ -229,8 +230,7 @@ def run(ctx: StageContext) -> None:
                         tuple(float(v) for v in default_mesh.mean(0)))
     mask = BackMask(cone_half_angle_deg=params.back_cone_deg)
     default = default_mesh[None]
-    np.savez_compressed(ctx.out / "meshes.npz", default=default,
-                        expressions=expressions if expressions is not None else np.zeros((0, *default_mesh.shape)))
+    out.write_meshes(default, expressions if expressions is not None else np.zeros((0, *default_mesh.shape)))
     manifest: dict = {}
     metrics = ctx.metrics
     envmap_seconds, directions, naive_seconds, fast_seconds, max_diff = [], [], [], [], 0.0

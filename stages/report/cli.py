@@ -30,8 +30,9 @@ def main(argv: Sequence[str]) -> int:
         return code
     from pipeline.project import find_project_root
     from pipeline.workspace import Workspace, workspace_root
+    from stages.report.output import ReportOutput
 
     ws = Workspace(workspace_root(find_project_root(), args.workspace_root), args.subject)
     ref = ws.read_ref("report")
-    print(f"report: {ws.object_path(ref.outputs['out']) / 'report.html'}")
+    print(f"report: {ReportOutput(ws.object_path(ref.outputs['out'])).html_path}")
     return 0

@@ -14,6 +14,7 @@ import hashlib
 import json
 from pathlib import Path
 
+from stages.capture.output import CaptureOutput
 from stages.report.html import Section, Table
 
 #: The oracle's columns, in the order of its JSON keys' prefixes.
@@ -33,18 +34,18 @@ def capture_fingerprint(capture: Path) -> str | None:
     without hashing every frame (a full-on frame would not: it is rendered the same way). None
     when the folder has no readable manifest.
     """
-    capture = Path(capture)
+    capture = CaptureOutput(capture)
     try:
-        text = (capture / "manifest.json").read_bytes()
+        text = capture.manifest_bytes()
         frames = json.loads(text).get("frames", [])
     except (OSError, ValueError, AttributeError):
         return None
     digest = hashlib.sha256(text)
     olat = [f["index"] for f in frames if isinstance(f, dict) and isinstance(f.get("light"), int)
             and f.get("status", "ok") == "ok" and "index" in f]
-    cameras = sorted(p for p in (capture / "frames").glob("*") if p.is_dir())
+    cameras = capture.frame_cameras()
     if olat and cameras:
-        frame = cameras[0] / f"{int(olat[0]):06d}.exr"
+        frame = capture.frame_path(cameras[0].name, int(olat[0]))
         if frame.is_file():
             digest.update(frame.read_bytes())
     return digest.hexdigest()[:16]

@@ -24,8 +24,11 @@ from pathlib import Path
 from pydantic import Field
 
 from pipeline.stage import Stage, StageContext, StageParams
+from pipeline.workspace import RUNNER_METRICS_FILE
+from stages.capture.output import CaptureOutput
 from stages.report.capacity import BENCH_PNG as CAPACITY_PNG, capacity_section
 from stages.report.light_oracle import capture_fingerprint, light_oracle_section
+from stages.report.output import ReportOutput
 from stages.report.seeds import seeds_section
 from stages.report.charts import stage_timings_chart, target_ratio_chart, tradeoff_chart
 from stages.report.html import Section, Table, render_document
@@ -60,7 +63,7 @@ def bench_results_folder(params: ReportParams) -> list[Path]:
 
 
 def _read_metrics(folder: Path) -> dict[str, float]:
-    path = folder / "metrics.json"
+    path = folder / RUNNER_METRICS_FILE
     if not path.is_file():
         return {}
     values = json.loads(path.read_text(encoding="utf-8"))
@@ -199,7 +202,8 @@ def _bench_section(folder: Path, skip: tuple[str, ...] = ()) -> Section:
 def run(ctx: StageContext) -> None:
     """Collect every stage's metrics and pictures into report.html."""
     params: ReportParams = ctx.params
-    charts = ctx.out / "charts"
+    out = ReportOutput(ctx.out)
+    charts = out.charts_dir
     charts.mkdir()
     merged = merged_metrics(ctx)
 
@@ -210,9 +214,9 @@ def run(ctx: StageContext) -> None:
     glance_table.add([_fmt(capture.get(k)) for k in
                       ("cameras", "frames", "full_on_frames", "olat_frames", "dropped_frames", "seconds")])
     glance.table(glance_table)
-    for name in ("contact_sheet.png", "strip.png"):
-        if (ctx.input("capture") / name).is_file():
-            glance.figure(ctx.input("capture") / name, name.removesuffix(".png").replace("_", " "))
+    for name, path in CaptureOutput(ctx.input("capture")).previews():
+        if path.is_file():
+            glance.figure(path, name.removesuffix(".png").replace("_", " "))
     sections.append(glance)
 
     targets_section, verdicts = _targets_section(merged, charts)
@@ -266,12 +270,11 @@ def run(ctx: StageContext) -> None:
     measured = sum(v["passed"] is not None for v in verdicts)
     subtitle = (f"subject {ctx.subject}; generated {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}; "
                 f"{measured - failed}/{measured} measured targets met")
-    (ctx.out / "report.html").write_text(render_document(params.title, subtitle, sections), encoding="utf-8")
-    (ctx.out / "summary.json").write_text(json.dumps({"metrics": merged, "targets": verdicts}, indent=1),
-                                          encoding="utf-8")
+    out.write_html(render_document(params.title, subtitle, sections))
+    out.write_summary({"metrics": merged, "targets": verdicts})
     ctx.metrics["targets_measured"] = measured
     ctx.metrics["targets_failed"] = failed
-    ctx.log.info("report: %d/%d measured targets met -> %s", measured - failed, measured, ctx.out / "report.html")
+    ctx.log.info("report: %d/%d measured targets met -> %s", measured - failed, measured, out.html_path)
 
 
 STAGE = Stage(

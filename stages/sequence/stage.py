@@ -13,7 +13,6 @@ Output:
 
 from __future__ import annotations
 
-import json
 import time
 from typing import Literal
 
@@ -24,6 +23,7 @@ from hardware.led.protocol import program_crc32
 from pipeline.errors import ConfigError
 from pipeline.stage import Stage, StageContext, StageParams
 from scene.rig import RigConfig, default_rig
+from stages.sequence.output import SequenceOutput
 from stages.sequence.order import (angle_matrix_deg, bar_directions, cycle_angles_deg, olat_upper_bounds,
                                    random_baseline_mean_deg, solve_olat_order)
 from stages.sequence.plot import azimuth_elevation_deg, plot_order
@@ -97,8 +97,9 @@ def run(ctx: StageContext) -> None:
                  for b, a, e in zip(bar_ids, azimuth, elevation)],
         "schedule": schedule,
     }
-    (ctx.out / "sequence.json").write_text(json.dumps(sequence, indent=1))
-    plot_order(ctx.out / "order.png", directions, result.olat_order, bar_ids, across,
+    out = SequenceOutput(ctx.out)
+    out.write_sequence(sequence)
+    plot_order(out.order_png_path, directions, result.olat_order, bar_ids, across,
                f"OLAT order: mean {result.mean_deg:.1f} deg, min {result.min_deg:.1f} deg "
                f"(naive {naive.mean():.1f}, bound {mean_bound:.1f}); dashed = across an F frame")
 

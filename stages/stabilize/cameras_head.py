@@ -43,6 +43,28 @@ def read_cameras_head(path: Path) -> dict[int, list[Camera]]:
     """
     try:
         data = json.loads(Path(path).read_text())
-        return {int(k): [Camera.from_dict(d) for d in v] for k, v in data["frames"].items()}
-    except (OSError, ValueError, KeyError, TypeError) as err:
+        return parse_cameras_head(data)
+    except (OSError, ValueError, KeyError, TypeError, AttributeError) as err:
         raise ValueError(f"{path}: not a valid head-space camera file ({err}); re-run the stabilize stage") from err
+
+
+def parse_cameras_head(data: dict) -> dict[int, list[Camera]]:
+    """The cameras of a parsed ``cameras_head.json``.
+
+    Besides the format above, reads the frames as a list (``[{"index", "cameras"}]``), the
+    cameras of a frame as a dict, and a camera's pose under ``cam_from_head``.
+    """
+    frames = data["frames"]
+    if isinstance(frames, dict):
+        frames = [{"index": k, "cameras": v} for k, v in frames.items()]
+    result: dict[int, list[Camera]] = {}
+    for entry in frames:
+        cams = entry["cameras"]
+        per_frame = []
+        for d in (cams.values() if isinstance(cams, dict) else cams):
+            d = dict(d)
+            if "cam_from_head" in d:
+                d["cam_from_world"] = d.pop("cam_from_head")
+            per_frame.append(Camera.from_dict(d))
+        result[int(entry["index"])] = per_frame
+    return result

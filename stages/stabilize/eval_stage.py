@@ -13,8 +13,9 @@ import numpy as np
 
 from pipeline.errors import InputError
 from pipeline.stage import Stage, StageContext, StageParams
-from scene.camera import Rigid, load_cameras
-from stages.stabilize.cameras_head import read_cameras_head
+from scene.camera import Rigid
+from stages.capture.output import CaptureTruth
+from stages.stabilize.output import StabilizeOutput
 
 
 class StabilizeEvalParams(StageParams):
@@ -23,15 +24,12 @@ class StabilizeEvalParams(StageParams):
 
 def run(ctx: StageContext) -> None:
     """Compare every frame's head-space cameras with the truth's."""
-    truth = ctx.input("capture.truth")
-    try:
-        head_cams = read_cameras_head(ctx.input("stabilize") / "cameras_head.json")
-        true_cams = {c.name: c for c in load_cameras(truth / "cameras.json")}
-        with np.load(truth / "frames.npz", allow_pickle=False) as data:
-            true_pose = {int(i): Rigid(np.asarray(R), np.asarray(t)) for i, R, t in
-                         zip(data["index"], data["world_from_head_R"], data["world_from_head_t"])}
-    except (ValueError, OSError, KeyError) as err:
-        raise InputError(f"stabilize_eval: cannot read its inputs ({err})") from err
+    truth = CaptureTruth(ctx.input("capture.truth"))
+    head_cams = StabilizeOutput(ctx.input("stabilize")).cameras_head()
+    true_cams = {c.name: c for c in truth.cameras()}
+    data = truth.frames(keys=("index", "world_from_head_R", "world_from_head_t"))
+    true_pose = {int(i): Rigid(np.asarray(R), np.asarray(t)) for i, R, t in
+                 zip(data["index"], data["world_from_head_R"], data["world_from_head_t"])}
     angles, centres_mm = [], []
     for index, cams in head_cams.items():
         if index not in true_pose:

@@ -11,10 +11,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.errors import InputError
 from pipeline.stage import Stage, StageContext, StageParams
-from scene.camera import load_cameras
-from stages.stabilize.cameras_head import write_cameras_head
+from stages.calibrate.output import CalibrateOutput
+from stages.stabilize.output import StabilizeOutput
+from stages.track.output import TrackOutput
 
 
 class StabilizeParams(StageParams):
@@ -23,25 +23,16 @@ class StabilizeParams(StageParams):
 
 def run(ctx: StageContext) -> None:
     """Fold each frame's head pose into the calibrated cameras."""
-    tracking_path = ctx.input("track") / "tracking.npz"
-    try:
-        with np.load(tracking_path, allow_pickle=False) as data:
-            index = np.asarray(data["index"])
-            R = np.asarray(data["world_from_head_R"], dtype=np.float64)
-            t = np.asarray(data["world_from_head_t"], dtype=np.float64)
-    except KeyError as err:
-        raise InputError(f"{tracking_path}: missing key {err}; re-run the track stage") from err
-    except (OSError, ValueError) as err:
-        raise InputError(f"{tracking_path}: not a readable npz ({err}); re-run the track stage") from err
+    track = TrackOutput(ctx.input("track"))
+    data = track.tracking(keys=("index", "world_from_head_R", "world_from_head_t"))
+    index = np.asarray(data["index"])
+    R = np.asarray(data["world_from_head_R"], dtype=np.float64)
+    t = np.asarray(data["world_from_head_t"], dtype=np.float64)
     if R.shape != (len(index), 3, 3) or t.shape != (len(index), 3):
-        raise InputError(f"{tracking_path}: world_from_head_R {R.shape} / world_from_head_t {t.shape} do not "
-                         f"match {len(index)} frames; re-run the track stage")
-    cams_path = ctx.input("calibrate") / "cameras.json"
-    try:
-        cameras = load_cameras(cams_path)
-    except ValueError as err:
-        raise InputError(str(err)) from err
-    write_cameras_head(ctx.out / "cameras_head.json", index, R, t, cameras)
+        raise track.malformed(track.tracking_path, f"world_from_head_R {R.shape} / world_from_head_t {t.shape} "
+                                                   f"do not match {len(index)} frames")
+    cameras = CalibrateOutput(ctx.input("calibrate")).cameras()
+    StabilizeOutput(ctx.out).write_cameras_head(index, R, t, cameras)
     ctx.metrics.update({"frames": int(len(index)), "cameras": len(cameras)})
     ctx.log.info("wrote head-space cameras for %d frames x %d cameras", len(index), len(cameras))
 

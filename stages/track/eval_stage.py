@@ -11,45 +11,32 @@ estimated world is first mapped onto the true one through the cameras the tracke
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 
 from pipeline.errors import InputError
 from pipeline.stage import Stage, StageContext, StageParams
-from scene.camera import Rigid, load_cameras
+from scene.camera import Rigid
+from stages.capture.output import CaptureTruth
 from stages.track import topology
 from stages.track.geometry import rotation_angle_deg
+from stages.track.output import TrackOutput
 
 
 class TrackEvalParams(StageParams):
     """Params of the track evaluation (none)."""
 
 
-def _load(path: Path, keys: tuple[str, ...]) -> dict[str, np.ndarray]:
-    try:
-        with np.load(path, allow_pickle=False) as data:
-            return {k: np.asarray(data[k]) for k in keys}
-    except KeyError as err:
-        raise InputError(f"{path}: missing key {err}; re-run the stage that wrote it") from err
-    except (OSError, ValueError) as err:
-        raise InputError(f"{path}: not a readable npz ({err}); re-run the stage that wrote it") from err
-
-
-def truth_world_from_estimated_world(estimated_cams_path: Path, truth_cams_path: Path) -> Rigid:
+def truth_world_from_estimated_world(track: TrackOutput, truth_out: CaptureTruth) -> Rigid:
     """The rigid map from the calibration's world frame to the truth's, through shared cameras.
 
     For every camera, ``truth_world_from_cam @ cam_from_est_world`` is an estimate of the
     map; rotations are averaged (chordal mean), translations averaged.
     """
-    try:
-        est = {c.name: c for c in load_cameras(estimated_cams_path)}
-        truth = {c.name: c for c in load_cameras(truth_cams_path)}
-    except ValueError as err:
-        raise InputError(str(err)) from err
+    est = {c.name: c for c in track.cameras()}
+    truth = {c.name: c for c in truth_out.cameras()}
     shared = sorted(set(est) & set(truth))
     if not shared:
-        raise InputError(f"{estimated_cams_path}: no camera name in common with {truth_cams_path}")
+        raise InputError(f"{track.cameras_path}: no camera name in common with {truth_out.cameras_path}")
     maps = [truth[n].cam_from_world.inverse() @ est[n].cam_from_world for n in shared]
     U, _, Vt = np.linalg.svd(sum(m.R for m in maps))
     R = U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
@@ -59,28 +46,28 @@ def truth_world_from_estimated_world(estimated_cams_path: Path, truth_cams_path:
 
 def run(ctx: StageContext) -> None:
     """Compare the tracked meshes and poses with the truth; see the module docstring."""
-    track, truth = ctx.input("track"), ctx.input("capture.truth")
-    tracking = _load(track / "tracking.npz", ("index", "full_on", "world_from_head_R", "world_from_head_t"))
-    meshes = _load(track / "meshes.npz", ("index", "vertices"))
-    true_frames = _load(truth / "frames.npz", ("index", "world_from_head_R", "world_from_head_t"))
-    true_meshes = _load(truth / "meshes.npz", ("vertices",))
+    track, truth = TrackOutput(ctx.input("track")), CaptureTruth(ctx.input("capture.truth"))
+    tracking = track.tracking(("index", "full_on", "world_from_head_R", "world_from_head_t"))
+    meshes = track.meshes(("index", "vertices"))
+    true_frames = truth.frames(("index", "world_from_head_R", "world_from_head_t"))
+    true_meshes = truth.meshes(("vertices",))
 
     true_row = {int(i): k for k, i in enumerate(true_frames["index"])}
     rows = [(k, true_row[int(i)]) for k, i in enumerate(tracking["index"]) if int(i) in true_row]
     if not rows:
-        raise InputError(f"{track / 'tracking.npz'}: no frame index in common with {truth / 'frames.npz'}")
+        raise InputError(f"{track.tracking_path}: no frame index in common with {truth.frames_path}")
     est_idx = np.array([r[0] for r in rows])
     true_idx = np.array([r[1] for r in rows])
     est_v = meshes["vertices"][est_idx].astype(np.float64)
     true_v = true_meshes["vertices"][true_idx].astype(np.float64)
     if est_v.shape[1:] != true_v.shape[1:]:
-        raise InputError(f"{track / 'meshes.npz'}: meshes have {est_v.shape[1]} vertices, the truth "
+        raise InputError(f"{track.meshes_path}: meshes have {est_v.shape[1]} vertices, the truth "
                          f"{true_v.shape[1]}; the scan session must share the truth's topology")
     face = topology.face_vertex_mask(est_v.shape[1])
     vertex_err_mm = np.linalg.norm(est_v[:, face] - true_v[:, face], axis=-1) * 1000.0  # [T, Vf]
     full = tracking["full_on"][est_idx].astype(bool)
 
-    world = truth_world_from_estimated_world(track / "cameras.json", truth / "cameras.json")
+    world = truth_world_from_estimated_world(track, truth)
     R_est = np.einsum("ij,tjk->tik", world.R, tracking["world_from_head_R"][est_idx])
     t_est = tracking["world_from_head_t"][est_idx] @ world.R.T + world.t
     rot_err = rotation_angle_deg(R_est, true_frames["world_from_head_R"][true_idx])

@@ -10,11 +10,11 @@ head space; the head pose is fitted separately.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
 from pipeline.errors import InputError
+from stages.capture.output import CaptureOutput
 
 
 @dataclass(frozen=True)
@@ -50,25 +50,17 @@ class ActorRig:
         return self.neutral_m + offsets
 
 
-def load_scan_rig(scans_path: Path) -> ActorRig:
-    """Build the actor rig from a capture's ``scans/scans.npz``.
+def load_scan_rig(capture: CaptureOutput) -> ActorRig:
+    """Build the actor rig from a capture's scan session (``CaptureOutput.scans``).
 
     Raises ``InputError`` naming the file when it is missing, lacks a key, or its arrays
     disagree in shape (the neutral scan must come first).
     """
-    scans_path = Path(scans_path)
-    if not scans_path.is_file():
-        raise InputError(f"{scans_path}: the capture has no scan session; the capture stage must "
-                         "write scans/scans.npz (names, vertices, faces, neutral first)")
-    try:
-        with np.load(scans_path, allow_pickle=False) as data:
-            names = [str(n) for n in data["names"]]
-            vertices = np.asarray(data["vertices"], dtype=np.float64)  # [S, V, 3]
-            faces = np.asarray(data["faces"], dtype=np.int64)  # [T, 3]
-    except KeyError as err:
-        raise InputError(f"{scans_path}: missing key {err}; expected 'names', 'vertices', 'faces'") from err
-    except (OSError, ValueError) as err:
-        raise InputError(f"{scans_path}: not a readable npz ({err}); re-run the capture stage") from err
+    scans_path = capture.scans_path
+    data = capture.scans(keys=("names", "vertices", "faces"))
+    names = [str(n) for n in data["names"]]
+    vertices = np.asarray(data["vertices"], dtype=np.float64)  # [S, V, 3]
+    faces = np.asarray(data["faces"], dtype=np.int64)  # [T, 3]
     if vertices.ndim != 3 or vertices.shape[2] != 3 or vertices.shape[0] != len(names):
         raise InputError(f"{scans_path}: 'vertices' has shape {vertices.shape}, expected "
                          f"[S={len(names)}, V, 3] matching 'names'")

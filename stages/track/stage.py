@@ -29,7 +29,6 @@ head space. Warnings name the frame and camera of every rejected view and unfitt
 
 from __future__ import annotations
 
-import json
 import time
 from pathlib import Path
 
@@ -38,11 +37,14 @@ from pydantic import Field
 
 from pipeline.errors import InputError
 from pipeline.stage import Stage, StageContext, StageParams
-from scene.camera import Camera, load_cameras, save_cameras
+from scene.camera import Camera
+from stages.calibrate.output import CalibrateOutput
+from stages.capture.output import CaptureOutput
 from stages.track import topology
 from stages.track.interpolate import interpolate_track
 from stages.track.landmarks import (NUM_FACEMESH_LANDMARKS, DetectorParams, detect_files, landmark_subset,
                                     to_detector_image)
+from stages.track.output import TrackOutput
 from stages.track.overlay import contact_sheet, draw_view, mesh_edges, write_png_rgb
 from stages.track.rig import ActorRig, load_scan_rig
 from stages.track.tracker import KeyFrameObservations, Tracker, TrackerParams, TrackResult
@@ -64,10 +66,9 @@ class TrackParams(StageParams):
     overlay_frames: int = Field(2, ge=0, description="Full-on frames drawn in overlay.png (one row of cameras each).")
 
 
-def _full_on_frames(manifest: dict, manifest_path: Path) -> list[dict]:
-    frames = manifest.get("frames")
-    if not isinstance(frames, list) or not frames:
-        raise InputError(f"{manifest_path}: no 'frames' list; re-run the capture stage")
+def _full_on_frames(manifest: dict, capture: CaptureOutput) -> list[dict]:
+    frames = capture.frames_of(manifest)
+    manifest_path = capture.manifest_path
     full_on = [f for f in frames if f.get("light") == "F" and f.get("status", "ok") == "ok"]
     if not full_on:
         raise InputError(f"{manifest_path}: the capture has no usable full-on ('F') frames, so there is "
@@ -77,11 +78,9 @@ def _full_on_frames(manifest: dict, manifest_path: Path) -> list[dict]:
 
 
 def _cameras(ctx: StageContext, manifest: dict) -> list[Camera]:
-    path = ctx.input("calibrate") / "cameras.json"
-    try:
-        calibrated = {c.name: c for c in load_cameras(path)}
-    except ValueError as err:
-        raise InputError(str(err)) from err
+    calibrate = CalibrateOutput(ctx.input("calibrate"))
+    path = calibrate.cameras_path
+    calibrated = {c.name: c for c in calibrate.cameras()}
     names = [str(n) for n in manifest.get("cameras", [])]
     missing = [n for n in names if n not in calibrated]
     if missing:
@@ -94,14 +93,14 @@ def _cameras(ctx: StageContext, manifest: dict) -> list[Camera]:
     return cams
 
 
-def _detect(ctx: StageContext, params: TrackParams, capture: Path, cams: list[Camera],
+def _detect(ctx: StageContext, params: TrackParams, capture: CaptureOutput, cams: list[Camera],
             key_frames: list[dict]) -> tuple[np.ndarray, np.ndarray, list[list[str]], list[list[np.ndarray]]]:
     """Detections [F, C, 468, 2], scores [F, C] (0 = rejected), statuses [F][C], outlines [F][C]."""
     cache = ctx.cache_dir / "landmarks"
     cache.mkdir(parents=True, exist_ok=True)
     jobs = []
     for cam in cams:
-        paths = [capture / "frames" / cam.name / f"{int(f['index']):06d}.exr" for f in key_frames]
+        paths = [capture.frame_path(cam.name, int(f["index"])) for f in key_frames]
         jobs.append((paths, params.detector, cache))
     ctx.log.info("detecting landmarks in %d full-on frames x %d cameras", len(key_frames), len(cams))
     per_camera = ctx.executor.map(detect_files, jobs, desc="cameras")
@@ -148,22 +147,22 @@ def _write_outputs(ctx: StageContext, params: TrackParams, rig: ActorRig, cams: 
     R, t, w = interpolate_track(key_t, key_R, key_tr, key_w, times, fit_params.weight_min, fit_params.weight_max)
     fitted_index = {int(key_frames[k]["index"]): result.fits[k] for k in fitted}
     reproj = np.array([fitted_index[i].mean_residual_px if i in fitted_index else np.nan for i in index])
-    np.savez_compressed(
-        ctx.out / "tracking.npz", index=index, time_s=times,
+    out = TrackOutput(ctx.out)
+    out.write_tracking(
+        index=index, time_s=times,
         full_on=np.array([f.get("light") == "F" for f in frames]),
         fitted=np.array([int(i) in fitted_index for i in index]),
         weights=w.astype(np.float32), expression_names=np.array(rig.names, dtype=str),
         world_from_head_R=R, world_from_head_t=t, landmark_reproj_px=reproj)
     vertices = rig.mesh(w).astype(np.float32)  # [T, V, 3]
-    np.savez(ctx.out / "meshes.npz", index=index, vertices=vertices, faces=rig.faces.astype(np.int32))
+    out.write_meshes(index, vertices, rig.faces.astype(np.int32))
     emb = result.embedding
-    np.savez(ctx.out / "embedding.npz", landmark_ids=emb.landmark_ids, triangles=emb.triangles,
-             barycentric=emb.barycentric)
-    save_cameras(ctx.out / "cameras.json", cams)
+    out.write_embedding(emb.landmark_ids, emb.triangles, emb.barycentric)
+    out.write_cameras(cams)
     if params.obj_frames:
-        (ctx.out / "obj").mkdir()
+        out.make_obj_dir()
         for k in np.unique(np.linspace(0, len(index) - 1, params.obj_frames).round().astype(int)):
-            _write_obj(ctx.out / "obj" / f"{index[k]:06d}.obj", vertices[k], rig.faces)
+            _write_obj(out.obj_path(index[k]), vertices[k], rig.faces)
     residuals = np.array([fitted_index[i].mean_residual_px for i in fitted_index])
     dropped = sum(len(fit.dropped_views) for fit in fitted_index.values())
     return {
@@ -182,7 +181,7 @@ def _write_obj(path: Path, vertices: np.ndarray, faces: np.ndarray) -> None:
     path.write_text("\n".join(lines) + "\n")
 
 
-def _write_overlay(ctx: StageContext, params: TrackParams, capture: Path, rig: ActorRig, cams: list[Camera],
+def _write_overlay(ctx: StageContext, params: TrackParams, capture: CaptureOutput, rig: ActorRig, cams: list[Camera],
                    key_frames: list[dict], uv_all: np.ndarray, result: TrackResult) -> None:
     from scene.image_io import read_exr
 
@@ -198,7 +197,7 @@ def _write_overlay(ctx: StageContext, params: TrackParams, capture: Path, rig: A
         verts_world = rig.mesh(pose.weights) @ pose.R.T + pose.t
         lm_world = result.embedding.points(rig.faces, rig.mesh(pose.weights)) @ pose.R.T + pose.t
         for c, cam in enumerate(cams):
-            path = capture / "frames" / cam.name / f"{int(key_frames[k]['index']):06d}.exr"
+            path = capture.frame_path(cam.name, int(key_frames[k]["index"]))
             try:
                 image = to_detector_image(read_exr(path), params.detector)
             except ValueError:
@@ -207,21 +206,18 @@ def _write_overlay(ctx: StageContext, params: TrackParams, capture: Path, rig: A
                 image = np.zeros((cam.height, cam.width, 3), np.uint8)
             label = f"{cam.name} frame {key_frames[k]['index']}"
             tiles.append(draw_view(image, cam, verts_world, edges, uv_all[k, c, ids], lm_world, label))
-    write_png_rgb(ctx.out / "overlay.png", contact_sheet(tiles, columns=len(cams), tile_width=min(320, cams[0].width)))
+    sheet = contact_sheet(tiles, columns=len(cams), tile_width=min(320, cams[0].width))
+    write_png_rgb(TrackOutput(ctx.out).overlay_path, sheet)
 
 
 def run(ctx: StageContext) -> None:
     """Detect, embed, fit, interpolate, write (see the module docstring)."""
     params: TrackParams = ctx.params  # type: ignore[assignment]
-    capture = ctx.input("capture")
-    manifest_path = capture / "manifest.json"
-    try:
-        manifest = json.loads(manifest_path.read_text())
-    except (OSError, ValueError) as err:
-        raise InputError(f"{manifest_path}: cannot read the capture manifest ({err}); re-run the capture stage") from err
-    key_frames = _full_on_frames(manifest, manifest_path)
+    capture = CaptureOutput(ctx.input("capture"))
+    manifest = capture.manifest()
+    key_frames = _full_on_frames(manifest, capture)
     cams = _cameras(ctx, manifest)
-    rig = load_scan_rig(capture / "scans" / "scans.npz")
+    rig = load_scan_rig(capture)
     try:
         ids = landmark_subset(params.landmark_groups)
         align_ids = landmark_subset(params.align_groups)
@@ -232,14 +228,14 @@ def run(ctx: StageContext) -> None:
     uv_all, score, status, contours = _detect(ctx, params, capture, cams, key_frames)
     detect_s = time.perf_counter() - start
     flat = [c for per_view in contours for c in per_view]
-    np.savez_compressed(ctx.out / "landmarks.npz", index=np.array([int(f["index"]) for f in key_frames]),
+    TrackOutput(ctx.out).write_landmarks(index=np.array([int(f["index"]) for f in key_frames]),
                         cameras=np.array([c.name for c in cams]), uv_px=uv_all.astype(np.float32), score=score,
                         status=np.array(status, dtype=str),
                         contour_px=np.concatenate(flat).astype(np.float32) if flat else np.zeros((0, 2), np.float32),
                         contour_count=np.array([[len(c) for c in per_view] for per_view in contours]))
     usable = (score > 0).sum(1)
     if usable.max(initial=0) < 2:
-        raise InputError(f"{capture}: no full-on frame has a face detected in two or more cameras "
+        raise InputError(f"{capture.path}: no full-on frame has a face detected in two or more cameras "
                          f"(views rejected: {sorted({s for row in status for s in row if s != 'ok'})}); "
                          "check the images (exposure, framing) in the capture's contact sheet")
 
@@ -253,7 +249,7 @@ def run(ctx: StageContext) -> None:
         try:
             result = tracker.run(observations, names, on_frame=progress.advance)
         except ValueError as err:
-            raise InputError(f"{capture}: {err}") from err
+            raise InputError(f"{capture.path}: {err}") from err
     for message in result.warnings:
         ctx.log.warning(message)
     metrics = _write_outputs(ctx, params, rig, cams, manifest, key_frames, result)

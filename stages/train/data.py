@@ -15,7 +15,6 @@ batch from disk pages rather than holding the capture in memory.
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -23,7 +22,11 @@ import numpy as np
 
 from pipeline.errors import InputError
 from scene.camera import Camera, Rigid
-from scene.image_io import read_exr, read_png16
+from stages.capture.output import CaptureOutput
+from stages.lightcal.output import LightcalOutput
+from stages.matte.output import MatteOutput
+from stages.stabilize.output import StabilizeOutput
+from stages.track.output import TrackOutput
 
 
 @dataclass
@@ -79,46 +82,6 @@ class TrainData:
         return np.broadcast_to(self.cam_pos_head[frame, camera], dirs.shape).copy(), dirs
 
 
-def _read_json(path: Path) -> dict:
-    try:
-        return json.loads(path.read_text())
-    except (OSError, ValueError) as err:
-        raise InputError(f"{path}: cannot read ({err}); re-run the stage that writes it") from err
-
-
-def _load_npz(path: Path, keys: tuple[str, ...]) -> dict[str, np.ndarray]:
-    try:
-        with np.load(path, allow_pickle=False) as npz:
-            missing = [k for k in keys if k not in npz.files]
-            if missing:
-                raise InputError(f"{path}: missing arrays {missing}; re-run the stage that writes it")
-            return {k: npz[k] for k in npz.files}
-    except OSError as err:
-        raise InputError(f"{path}: cannot read ({err}); re-run the stage that writes it") from err
-
-
-def _stabilised_cameras(path: Path) -> dict[int, dict[str, Camera]]:
-    """frame index -> camera name -> Camera whose ``cam_from_world`` is cam_from_head."""
-    data = _read_json(path)
-    frames = data.get("frames")
-    if frames is None:
-        raise InputError(f"{path}: no 'frames' list; re-run stabilize")
-    if isinstance(frames, dict):
-        frames = [{"index": int(k), "cameras": v} for k, v in frames.items()]
-    result: dict[int, dict[str, Camera]] = {}
-    for entry in frames:
-        cams = entry["cameras"]
-        items = cams.values() if isinstance(cams, dict) else cams
-        per_frame = {}
-        for d in items:
-            d = dict(d)
-            if "cam_from_head" in d:
-                d["cam_from_world"] = d.pop("cam_from_head")
-            per_frame[str(d["name"])] = Camera.from_dict(d)
-        result[int(entry["index"])] = per_frame
-    return result
-
-
 def _resize(img: np.ndarray, width: int, height: int) -> np.ndarray:
     import cv2
 
@@ -154,31 +117,31 @@ def load_train_data(inputs: dict[str, Path], image_width_px: int, log, max_frame
     ``resident_limit_gb``: images and mattes larger than this go to memory-mapped files in
     ``spill_dir`` (required then) instead of RAM.
     """
-    capture, stabilize, track = inputs["capture"], inputs["stabilize"], inputs["track"]
-    matte, lightcal = inputs["matte"], inputs["lightcal"]
-    manifest = _read_json(capture / "manifest.json")
-    bars_json = _read_json(lightcal / "bars.json")
-    bars = {int(b["id"]): np.asarray(b["center_world"], np.float64) for b in bars_json["bars"]}
+    capture, stabilize, track = (CaptureOutput(inputs["capture"]), StabilizeOutput(inputs["stabilize"]),
+                                 TrackOutput(inputs["track"]))
+    matte, lightcal = MatteOutput(inputs["matte"]), LightcalOutput(inputs["lightcal"])
+    manifest = capture.manifest(keys=("cameras", "frames", "width", "height"))
+    bars = {int(b["id"]): np.asarray(b["center_world"], np.float64) for b in lightcal.bars()}
     num_bars = max(int(manifest.get("bars", 0)), max(bars) + 1 if bars else 0)
     light_world = np.full((num_bars, 3), np.nan)
     for bar_id, centre in bars.items():
         light_world[bar_id] = centre
-    tracking = _load_npz(track / "tracking.npz", ("index", "world_from_head_R", "world_from_head_t"))
-    meshes = _load_npz(track / "meshes.npz", ("vertices",))
+    tracking = track.tracking(("index", "world_from_head_R", "world_from_head_t"))
+    meshes = track.meshes(("vertices",))
     mesh_index = meshes.get("index", tracking["index"])
     if len(mesh_index) != len(meshes["vertices"]):
-        raise InputError(f"{track / 'meshes.npz'}: {len(meshes['vertices'])} meshes but {len(mesh_index)} frame "
-                         "indices; re-run track")
+        raise track.malformed(track.meshes_path, f"{len(meshes['vertices'])} meshes but {len(mesh_index)} frame "
+                                                 "indices")
     if "faces" in meshes:
         faces = meshes["faces"]
     else:
-        faces = _load_npz(capture / "scans" / "scans.npz", ("faces",))["faces"]
+        faces = capture.scans(keys=("faces",))["faces"]
     from avatar.layout import triangulate
 
     triangles = triangulate(faces)
     mesh_row = {int(i): r for r, i in enumerate(mesh_index)}
     pose_row = {int(i): r for r, i in enumerate(tracking["index"])}
-    cams_head = _stabilised_cameras(stabilize / "cameras_head.json")
+    cams_head = stabilize.cameras_head_by_name()
     camera_names = [str(c) for c in manifest["cameras"]]
     frames = []
     for f in manifest["frames"]:
@@ -191,14 +154,14 @@ def load_train_data(inputs: dict[str, Path], image_width_px: int, log, max_frame
             log.warning("frame %d: no tracked mesh, pose or stabilised camera; skipped", idx)
             continue
         if bar >= num_bars or not np.isfinite(light_world[bar]).all():
-            log.warning("frame %d: bar %d has no calibrated position in lightcal/bars.json; skipped", idx, bar)
+            log.warning("frame %d: bar %d has no calibrated position in %s; skipped", idx, bar, lightcal.bars_path)
             continue
         frames.append((idx, str(f.get("take", "")), bar))
     if max_frames and len(frames) > max_frames:
         pick = np.linspace(0, len(frames) - 1, max_frames).round().astype(int)
         frames = [frames[i] for i in pick]
     if not frames:
-        raise InputError(f"{capture / 'manifest.json'}: no usable OLAT frames (status ok, tracked, "
+        raise InputError(f"{capture.manifest_path}: no usable OLAT frames (status ok, tracked, "
                          "with a calibrated bar); check the capture and the track stage")
     width0, height0 = int(manifest["width"]), int(manifest["height"])
     scale = image_width_px / width0 if image_width_px else 1.0
@@ -230,14 +193,9 @@ def load_train_data(inputs: dict[str, Path], image_width_px: int, log, max_frame
         for j, name in enumerate(camera_names):
             cam = cams_head[idx].get(name)
             if cam is None:
-                raise InputError(f"{stabilize / 'cameras_head.json'}: frame {idx} has no camera '{name}'; re-run stabilize")
-            img_path = capture / "frames" / name / f"{idx:06d}.exr"
-            matte_path = matte / "mattes" / name / f"{idx:06d}.png"
-            try:
-                img = read_exr(img_path)[..., :3]
-                alpha = read_png16(matte_path)
-            except (ValueError, OSError) as err:
-                raise InputError(f"{err}; frame {idx}, camera {name}: re-run capture / matte") from err
+                raise stabilize.malformed(stabilize.cameras_head_path, f"frame {idx} has no camera '{name}'")
+            img = capture.frame(name, idx)[..., :3]
+            alpha = matte.matte(name, idx)
             images[i, j] = _resize(img, width, height)
             mattes[i, j] = _resize(alpha, width, height)
             cam_small = cam.scaled(width / cam.width)
@@ -245,7 +203,7 @@ def load_train_data(inputs: dict[str, Path], image_width_px: int, log, max_frame
                 cam_intrinsics[j] = _intrinsics(cam_small)
                 pixel_dirs[j] = _pixel_directions(cam_small)
             elif _intrinsics(cam_small) != cam_intrinsics[j]:
-                raise InputError(f"{stabilize / 'cameras_head.json'}: camera '{name}' has other intrinsics in frame "
+                raise InputError(f"{stabilize.cameras_head_path}: camera '{name}' has other intrinsics in frame "
                                  f"{idx} than in frame {frames[0][0]}; a camera's lens must be the same in every "
                                  "frame (re-run calibrate and stabilize)")
             head_from_cam[i, j] = cam_small.cam_from_world.R.T

@@ -54,6 +54,7 @@ from pipeline.stage import Stage, StageContext, StageParams
 from stages.train.data import TrainData, load_train_data
 from stages.train.evaluate import (SCALED_SPLITS, coverage_metrics, curve_png, eval_pairs, image_metrics,
                                    psnr_by_bar, results_table)
+from stages.train.output import RUN_RECORDS, TrainOutput
 from stages.train.splits import SPLITS, Splits, make_splits, nearest_training_distance_mm
 from stages.train.side_by_side import train_models
 from stages.train.trainer import LossWeights, ModelTrainer, PruneSchedule, Renderer, TrainTensors
@@ -251,7 +252,7 @@ def train(ctx: StageContext, rank: int = 0, world_size: int = 1, device: torch.d
         raise InputError("train: no training frames left after holding out "
                          f"bars {splits.held_out_bars} and take '{splits.held_out_take}'; capture more OLAT frames")
     if lead:
-        _write_splits(ctx.out / "splits.json", data, splits)
+        _write_splits(TrainOutput(ctx.out).splits_path, data, splits)
     image_scale = exposure_of(data, train_frames)
     data.images *= image_scale  # in place (a spilled array is rescaled on disk, page by page)
     metrics_scale = {"image_scale": image_scale}
@@ -265,7 +266,7 @@ def train(ctx: StageContext, rank: int = 0, world_size: int = 1, device: torch.d
                  capacity.stats.image_height_px, capacity.stats.footprint_px, capacity.stats.frames,
                  capacity.stats.expression_modes)
     if lead:
-        _write_capacity(ctx.out / "capacity.json", params, capacity, avatar)
+        _write_capacity(TrainOutput(ctx.out).capacity_path, params, capacity, avatar)
     mean_mesh = data.vertices[train_frames].mean(0)
     layout = layout_for(avatar, mean_mesh, data.triangles)
     tensors = _tensors(data, layout.guide_vertex_ids, device)
@@ -339,7 +340,7 @@ def train(ctx: StageContext, rank: int = 0, world_size: int = 1, device: torch.d
         extra = {"image_scale": image_scale, "basis_bars": basis_bars, "basis_directions": np.stack([bar_dirs[b] for b in basis_bars]).tolist(),
                  "held_out_bars": list(splits.held_out_bars),
                  "bar_intensity": {int(b): float(torch.exp(model.log_bar_intensity[b]).detach()) for b in basis_bars}}
-        save_trained(ctx.out / "models" / kind, model, kind, extra)
+        save_trained(TrainOutput(ctx.out).model_dir(kind), model, kind, extra)
         # The fit on training images (seen frames, cameras and lights): next to the held-out
         # figures it tells underfitting (both low) from overfitting (a large gap).
         fit_pairs = eval_pairs(fitted_frames, num_cams, params.eval_images)
@@ -386,14 +387,15 @@ def train(ctx: StageContext, rank: int = 0, world_size: int = 1, device: torch.d
     metrics["capacity_parameters"] = metrics.get("ours_parameters", 0)
     if writer is not None:
         writer.close()
-    curve_png(ctx.out / "learning_curve.png", {("TRAvatar*" if k == "travatar" else k): v for k, v in curves.items()},
+    out = TrainOutput(ctx.out)
+    curve_png(out.curve_png_path, {("TRAvatar*" if k == "travatar" else k): v for k, v in curves.items()},
               f"held-out bars {list(splits.held_out_bars)}")
-    (ctx.out / "curve.json").write_text(json.dumps(curves))
-    _write_curve_tradeoff(ctx.out / "tradeoffs" / "learning_curve.json", curves, avatar, params.capacity)
+    out.curve_path.write_text(json.dumps(curves))
+    _write_curve_tradeoff(out.curve_tradeoff_path, curves, avatar, params.capacity)
     table = results_table(metrics, kinds)
-    (ctx.out / "table.md").write_text(table)
+    out.table_path.write_text(table)
     ctx.log.info("results (linear RGB; novel-light predictions exposure-matched):\n%s", table)
-    _write_previews(ctx.out / "previews", tensors, pairs, renders, params.previews)
+    _write_previews(out.previews_dir, tensors, pairs, renders, params.previews)
     _drop_spill(ctx, rank, data)
 
 
@@ -531,7 +533,7 @@ def _tensorboard_writer(ctx: StageContext):
     except ImportError:
         ctx.log.warning("tensorboard is not installed; no TensorBoard logs")
         return None
-    return SummaryWriter(str(ctx.out / "tensorboard"))
+    return SummaryWriter(str(TrainOutput(ctx.out).tensorboard_dir))
 
 
 def _targets(t: TrainTensors, pairs: list[tuple[int, int]]) -> torch.Tensor:
@@ -585,4 +587,4 @@ STAGE = Stage(name="train", inputs=("capture", "stabilize", "track", "matte", "l
               run=run, doc=__doc__ or "",
               # Wall-clock records: two runs of the same deterministic training differ only here (and in
               # metrics.json), so relight and evaluate, which read the models, need not rerun.
-              run_records=("curve.json", "learning_curve.png", "tensorboard/*", "tradeoffs/learning_curve.json"))
+              run_records=RUN_RECORDS)

@@ -132,12 +132,13 @@ def test_cone_centre_recovers_a_sphere_from_its_exact_outline():
 
 def test_cameras_are_rescaled_to_the_mirror_take_resolution(calib_capture):
     from scene.camera import load_cameras
+    from stages.capture.output import CaptureOutput
     from stages.lightcal.stage import _at_mirror_resolution
 
     capture, truth = calib_capture
     true = {c.name: c for c in load_cameras(truth / "cameras.json")}  # 240x320, as the mirror take
     native = {n: c.scaled(3.2) for n, c in true.items()}  # calibrated at 768x1024
-    back = _at_mirror_resolution(native, capture, "room.exr")
+    back = _at_mirror_resolution(native, CaptureOutput(capture), "room.exr")
     for n, c in back.items():
         assert (c.width, c.height) == (240, 320)
         assert abs(c.cx - true[n].cx) < 1e-9 and abs(c.fy - true[n].fy) < 1e-9

@@ -10,7 +10,8 @@ import pytest
 
 from pipeline.errors import InputError
 from scene.camera import Camera, look_at
-from stages.train.data import _pixel_directions, _stabilised_cameras, load_train_data
+from stages.stabilize.output import StabilizeOutput
+from stages.train.data import _pixel_directions, load_train_data
 from tests.stages.train.train_synth import make_capture
 
 
@@ -33,7 +34,7 @@ def test_pixel_directions_rotated_into_head_space_equal_the_cameras_rays():
 
 def test_rays_of_an_image_match_the_stabilised_camera(capture):
     data = load_train_data(capture, 24, logging.getLogger("test"))
-    cams = _stabilised_cameras(capture["stabilize"] / "cameras_head.json")
+    cams = StabilizeOutput(capture["stabilize"]).cameras_head_by_name()
     cam = cams[int(data.frame_index[1])][data.camera_names[2]]
     cam = cam.scaled(24 / cam.width)
     want_o, want_d = cam.image_rays()
