@@ -35,7 +35,7 @@ import os
 import sys
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterable, Protocol, Sequence
+from typing import Callable, Iterable, Protocol, Sequence
 
 from pipeline.errors import ConfigError
 from pipeline.hashing import hash_bytes, hash_file
@@ -77,41 +77,38 @@ def _strip_docstrings(tree: ast.AST) -> ast.AST:
     return tree
 
 
-def normalised_source_digest(path: Path | str, store: _DigestStore | None = None) -> str:
-    """Digest of a Python file's meaning: its AST without docstrings (raw bytes if unparsable)."""
-    st = os.stat(path)
-    key = (str(path), st.st_size, st.st_mtime_ns)
-    cached = _FILE_CACHE.get(key)
-    if cached is None and store is not None:
-        cached = store.file_digest(str(path))
-    if cached is not None:
-        _FILE_CACHE[key] = cached
-        return cached
+def _python_meaning(path: Path | str) -> str:
     raw = Path(path).read_bytes()
     try:
         tree = _strip_docstrings(ast.parse(raw, filename=str(path)))
-        digest = hash_bytes(ast.dump(tree, annotate_fields=False, include_attributes=False).encode())
+        return hash_bytes(ast.dump(tree, annotate_fields=False, include_attributes=False).encode())
     except (SyntaxError, ValueError):
-        digest = hash_bytes(raw)
-    _FILE_CACHE[key] = digest
-    if store is not None:
-        store.put_file_digest(str(path), st.st_size, st.st_mtime_ns, digest)
-    return digest
+        return hash_bytes(raw)
 
 
-def data_file_digest(path: Path | str, store: _DigestStore | None = None) -> str:
-    """Digest of a non-Python file's bytes (cached by stat like the source digests)."""
+def _cached_digest(path: Path | str, store: _DigestStore | None, compute: Callable[[Path | str], str]) -> str:
+    """``compute(path)``, cached per process and in ``store`` by the file's (path, size, mtime)."""
     st = os.stat(path)
     key = (str(path), st.st_size, st.st_mtime_ns)
     cached = _FILE_CACHE.get(key)
     if cached is None and store is not None:
         cached = store.file_digest(str(path))
     if cached is None:
-        cached = hash_file(path)
+        cached = compute(path)
         if store is not None:
             store.put_file_digest(str(path), st.st_size, st.st_mtime_ns, cached)
     _FILE_CACHE[key] = cached
     return cached
+
+
+def normalised_source_digest(path: Path | str, store: _DigestStore | None = None) -> str:
+    """Digest of a Python file's meaning: its AST without docstrings (raw bytes if unparsable)."""
+    return _cached_digest(path, store, _python_meaning)
+
+
+def data_file_digest(path: Path | str, store: _DigestStore | None = None) -> str:
+    """Digest of a non-Python file's bytes (cached by stat like the source digests)."""
+    return _cached_digest(path, store, hash_file)
 
 
 def _python_files(folder: Path) -> list[Path]:
