@@ -9,7 +9,7 @@ light positions serve the model (head space) and the studio (world).
 
 Usage::
 
-    subject = subject_from_truth(studio)              # the capture truth's studio record
+    subject = subject_from_truth(truth_dir)           # capture.truth/studio.json
     frame = frame_from_weights(weights)                # [57] ICT weights, head at the origin
     img = render_envmap_truth(subject, frame, camera, envmap, directions=1024)
     img = render_point_truth(subject, frame, camera, position_world, intensity_rgb)
@@ -17,7 +17,8 @@ Usage::
 
 from __future__ import annotations
 
-from typing import Any, Mapping
+import json
+from pathlib import Path
 
 import numpy as np
 
@@ -29,18 +30,16 @@ from scene.envmap import BackMask, EnvMap, select_uniform
 from scene.lights import DirectionalLight, PointLight
 
 
-def subject_from_truth(studio: Mapping[str, Any]) -> Subject:
-    """Rebuild the captured subject from the capture truth's studio record (name and identity seed).
-
-    ``studio``: the parsed record (``stages.capture.output.CaptureTruth.studio``). Raises
-    ``ValueError`` when it does not say which subject it is.
-    """
+def subject_from_truth(truth_dir: Path) -> Subject:
+    """Rebuild the captured subject from ``capture.truth/studio.json`` (name and identity seed)."""
+    path = Path(truth_dir) / "studio.json"
     try:
+        spec = json.loads(path.read_text())
         # The albedo atlas resolution, when the capture recorded it (else the studio default).
-        extra = {"texture_size": int(studio["texture_size"])} if "texture_size" in studio else {}
-        return make_subject(str(studio["subject"]), int(studio["identity_seed"]), **extra)
-    except (ValueError, KeyError, TypeError) as err:
-        raise ValueError(f"cannot rebuild the subject ({err!r})") from err
+        extra = {"texture_size": int(spec["texture_size"])} if "texture_size" in spec else {}
+        return make_subject(str(spec["subject"]), int(spec["identity_seed"]), **extra)
+    except (OSError, ValueError, KeyError) as err:
+        raise ValueError(f"{path}: cannot rebuild the subject ({err}); re-run the capture stage") from err
 
 
 def frame_from_weights(expression_weights: np.ndarray, index: int = 0) -> FrameState:

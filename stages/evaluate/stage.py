@@ -172,9 +172,9 @@ def run(ctx: StageContext) -> None:
     train, track = TrainOutput(ctx.input("train")), TrackOutput(ctx.input("track"))
     model, _meta = train.model(load_trained)
     try:
-        subject = subject_from_truth(truth.studio())
+        subject = subject_from_truth(truth.path)
     except ValueError as err:
-        raise truth.malformed(truth.studio_path, err) from err
+        raise InputError(f"evaluate: {err}") from err
     meshes = track.meshes(keys=("vertices",))
     mesh_index = [int(i) for i in meshes["index"]] if "index" in meshes else list(range(len(meshes["vertices"])))
     truth_frames = truth.frames(keys=("weights",))

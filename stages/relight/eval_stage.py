@@ -23,6 +23,7 @@ import torch
 from pydantic import Field
 
 from avatar.metrics import exposure_scale, psnr, ssim
+from pipeline.errors import InputError
 from pipeline.stage import Stage, StageContext, StageParams
 from scene.camera import Camera
 from scene.envmap import read_envmap
@@ -61,9 +62,9 @@ def run(ctx: StageContext) -> None:
     manifest = relight.renders()
     weights_all = truth_out.frames(keys=("weights",))["weights"]
     try:
-        subject = subject_from_truth(truth_out.studio())
+        subject = subject_from_truth(truth_out.path)
     except ValueError as err:
-        raise truth_out.malformed(truth_out.studio_path, err) from err
+        raise InputError(f"relight_eval: {err}") from err
     # The relight stage drives the head with the first tracked mesh: capture frame 0.
     frame = frame_from_weights(weights_all[0])
     scores: dict[str, list[tuple[float, float]]] = {"envmap": [], "point": []}
