@@ -30,7 +30,7 @@ def travatar():
 
 def _camera(width: int = 16, height: int = 20) -> Camera:
     cam = Camera("test", width, height, fx=40.0, fy=40.0, cx=width / 2 - 0.5, cy=height / 2 - 0.5)
-    return cam.with_pose(look_at(np.array([0.1, 0.05, 0.6]), np.zeros(3)))
+    return cam.with_pose(look_at(np.array([0.1, 0.05, 0.6]), np.zeros(3)), "head")
 
 
 def _sky(count: int = 20):
