@@ -80,8 +80,8 @@ def envmap_truth_lights(envmap: EnvMap, directions: int = 1024) -> list[Directio
 def render_envmap_truth(subject: Subject, frame: FrameState, camera: Camera, envmap: EnvMap,
                         directions: int = 1024, settings: RenderSettings | None = None) -> RenderResult:
     """The studio's render of ``frame`` from ``camera`` (posed in head space = world) lit by ``envmap``."""
-    return _studio(subject, settings).render_lights(frame, studio_camera(camera), envmap_truth_lights(envmap, directions),
-                                                    noise=False)
+    return _studio(subject, settings).render_lights(frame, studio_camera(camera),
+                                                    envmap_truth_lights(envmap, directions), noise=False)
 
 
 def render_point_truth(subject: Subject, frame: FrameState, camera: Camera, position_world: np.ndarray,

@@ -141,6 +141,9 @@ def test_clear_errors(ours, travatar):
         PointLights(np.zeros((2, 3)), np.ones((3, 3)))
     with pytest.raises(ValueError, match="method"):
         render(model, verts, _camera(), PointLights(np.ones((1, 3))), method="fastest")  # type: ignore[arg-type]
+    world_camera = _camera().with_pose(_camera().cam_from_head, "world")  # a frame mix-up
+    with pytest.raises(ValueError, match="world frame.*cam_from_head"):
+        render(model, verts, world_camera, PointLights(np.ones((1, 3))))
     trav, trav_verts = travatar
     with pytest.raises(ValueError, match="light basis"):
         render(trav, trav_verts, _camera(), PointLights(np.ones((1, 3))))

@@ -89,3 +89,22 @@ def test_stage_rejects_a_broken_tracking_file(tmp_path):
     np.savez(track / "tracking.npz", index=np.arange(3), world_from_head_R=R)
     with pytest.raises(InputError, match="world_from_head_t"):
         run_stage_for_test(STABILIZE, tmp_path / "work", inputs={"track": track, "calibrate": calibrate})
+
+
+def test_cameras_head_file_names_the_head_frame_and_reads_the_earlier_key(tmp_path):
+    cams = _cameras()
+    R, t = _poses(2)
+    path = tmp_path / "cameras_head.json"
+    write_cameras_head(path, [0, 1], R, t, cams)
+    text = path.read_text()
+    assert '"cam_from_head"' in text and '"cam_from_world"' not in text
+    new = read_cameras_head(path)
+    # A file written before poses named their frame: the same poses under cam_from_world.
+    path.write_text(text.replace('"cam_from_head"', '"cam_from_world"'))
+    old = read_cameras_head(path)
+    for index in (0, 1):
+        for a, b in zip(new[index], old[index]):
+            assert a.frame == b.frame == "head"
+            assert np.array_equal(a.cam_from_head.matrix(), b.cam_from_head.matrix())
+            with pytest.raises(ValueError, match="head frame"):
+                b.cam_from_world
