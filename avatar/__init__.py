@@ -16,9 +16,10 @@ Usage (stable API; all positions in head space, metres; images linear RGB)::
     model, meta = load_trained(train_dir / "models" / "ours")   # eval mode, CPU by default
     image_scale = meta["image_scale"]   # renders are in training units; render() divides by it
 
-    # A camera in head space: a scene.camera.Camera whose extrinsics are cam_from_head (e.g. from
-    # stabilize/cameras_head.json, or cam_from_world @ world_from_head). A tracked head-space mesh
-    # [V, 3] (track/meshes.npz) drives the head; decode it once to render it many times.
+    # A camera in head space: a scene.camera.Camera posed in the head frame, cam.cam_from_head (e.g.
+    # from stabilize's cameras_head(), or cam.with_pose(cam.cam_from_world @ world_from_head, "head")).
+    # A tracked head-space mesh [V, 3] (track/meshes.npz) drives the head; decode it once to render
+    # it many times.
     geometry = decode(model, mesh_vertices)   # boxes + opacity: independent of light and view
 
     # Point lights: positions [K, 3] with RGB intensities [K, 3] (1 = the network's unit light,

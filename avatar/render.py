@@ -22,7 +22,7 @@ The TRAvatar* baseline (``model.config.light_basis > 0``) needs its ``LightBasis
 (``LightBasis(meta["basis_directions"])`` of the saved model): point and directional lights
 are blended barycentrically over the basis (``avatar.travatar.interpolated_rgb``).
 
-Everything is in head space, metres: the camera's extrinsics are cam_from_head, light
+Everything is in head space, metres: cameras are posed in the head frame (``cam_from_head``), light
 positions are head-space points. Images are linear RGB in the network's training units;
 ``image_scale`` (the trained model's ``meta["image_scale"]``) divides them back into the
 capture's units.
@@ -185,11 +185,15 @@ class Rays:
 
     @staticmethod
     def of_camera(camera, device: str | torch.device = "cpu") -> "Rays":
-        """Every pixel's ray of a ``scene.camera.Camera`` whose extrinsics are cam_from_head."""
-        origins, dirs = camera.image_rays()  # [H, W, 3]
+        """Every pixel's ray of a ``scene.camera.Camera`` posed in the head frame (``cam_from_head``).
+
+        A camera posed in another frame raises ``ValueError`` (the avatar lives in head space).
+        """
+        camera.cam_from("head")  # refuses a camera posed in another frame
+        origins, dirs = camera.image_rays()  # [H, W, 3], head space
         o = torch.as_tensor(origins.reshape(-1, 3), dtype=torch.float32, device=device)
         d = torch.as_tensor(dirs.reshape(-1, 3), dtype=torch.float32, device=device)
-        position = torch.as_tensor(np.asarray(camera.center_world, np.float32).reshape(3), device=device)
+        position = torch.as_tensor(np.asarray(camera.center, np.float32).reshape(3), device=device)
         return Rays(o, d, position, int(camera.height), int(camera.width))
 
 
@@ -290,7 +294,7 @@ def render(model: RelightableMVP, mesh: ArrayLike | DecodedGeometry, camera, lig
     Args:
         model: a trained ``RelightableMVP`` (ours or TRAvatar*), on the device to render on.
         mesh: the driving mesh [V, 3] (head space, metres), or its ``decode(model, mesh)``.
-        camera: a ``scene.camera.Camera`` (extrinsics cam_from_head) or ``Rays``.
+        camera: a ``scene.camera.Camera`` posed in the head frame (``cam_from_head``) or ``Rays``.
         lights: ``PointLights``, ``DirectionalLights`` or (TRAvatar*) ``BasisLights``.
         basis: TRAvatar*'s light basis (needed for point and directional lights).
         steps: raymarch steps per ray (None: ``model.config.steps_per_ray``).

@@ -36,7 +36,7 @@ def _tensors(width_px: int, frames: int, device: torch.device) -> tuple[TrainTen
     for spec in rig.cameras:
         cam = Camera(spec.name, rig.width_px, rig.height_px, spec.focal_px, spec.focal_px,
                      rig.width_px / 2 - 0.5, rig.height_px / 2 - 0.5,
-                     cam_from_world=look_at(np.array(spec.position_m), np.array(spec.look_at_m)))
+                     pose=look_at(np.array(spec.position_m), np.array(spec.look_at_m)))
         cams.append(cam.scaled(width_px / rig.width_px))
     h, w = cams[0].height, cams[0].width
     # Pixel directions in each camera's frame, and the cameras' head_from_cam rotations.

@@ -93,7 +93,7 @@ class RigConfig(_Frozen):
                 cx=(self.width_px - 1) / 2 + spec.principal_offset_px[0],
                 cy=(self.height_px - 1) / 2 + spec.principal_offset_px[1],
                 dist=tuple(spec.dist),  # type: ignore[arg-type]
-                cam_from_world=look_at(np.array(spec.position_m), np.array(spec.look_at_m), np.array(spec.up)),
+                pose=look_at(np.array(spec.position_m), np.array(spec.look_at_m), np.array(spec.up)),
             )
             out.append(cam if scale == 1.0 else cam.scaled(scale))
         return out

@@ -279,11 +279,11 @@ def test_stabilize_output_round_trip(tmp_path):
     from stages.stabilize.output import StabilizeOutput
 
     cam = Camera(name="cam00", width=8, height=6, fx=10.0, fy=10.0, cx=4.0, cy=3.0, dist=(0.0,) * 5,
-                 cam_from_world=Rigid(np.eye(3), np.array([0.0, 0.0, 1.0])))
+                 pose=Rigid(np.eye(3), np.array([0.0, 0.0, 1.0])))
     out = StabilizeOutput(tmp_path)
     out.write_cameras_head([0, 4], np.stack([np.eye(3)] * 2), np.zeros((2, 3)), [cam])
     back = out.cameras_head_by_name()
-    assert sorted(back) == [0, 4] and back[4]["cam00"].cam_from_world.t.tolist() == [0.0, 0.0, 1.0]
+    assert sorted(back) == [0, 4] and back[4]["cam00"].cam_from_head.t.tolist() == [0.0, 0.0, 1.0]
 
 
 def test_other_stages_errors_say_which_stage_to_rerun(tmp_path):

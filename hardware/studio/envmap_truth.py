@@ -5,7 +5,8 @@ light and pixel, so an environment map rendered as many directional lights (ever
 integrating its Voronoi cell of the map, nothing masked or dropped) is the reference a
 learned relight is measured against. The head is posed at the origin with the world axes
 (``world_from_head`` = identity), so world and head space coincide and the same cameras and
-light positions serve the model (head space) and the studio (world).
+light positions serve the model (head space) and the studio (world): ``studio_camera`` re-poses a
+head-frame camera as the studio's world camera.
 
 Usage::
 
@@ -47,6 +48,17 @@ def frame_from_weights(expression_weights: np.ndarray, index: int = 0) -> FrameS
     return FrameState(index, "relight", 0.0, np.asarray(expression_weights, np.float32), Rigid.identity())
 
 
+def studio_camera(camera: Camera) -> Camera:
+    """A camera posed in the head frame as the studio's (world) camera, for a head at the origin.
+
+    The frames of ``frame_from_weights`` have ``world_from_head`` = identity, so
+    ``cam_from_world = cam_from_head``. A camera already posed in the world is returned as is.
+    """
+    if camera.frame == "world":
+        return camera
+    return camera.with_pose(camera.cam_from_head, "world")
+
+
 def _studio(subject: Subject, settings: RenderSettings | None) -> VirtualStudio:
     from scene.rig import load_rig
 
@@ -66,13 +78,13 @@ def envmap_truth_lights(envmap: EnvMap, directions: int = 1024) -> list[Directio
 
 def render_envmap_truth(subject: Subject, frame: FrameState, camera: Camera, envmap: EnvMap,
                         directions: int = 1024, settings: RenderSettings | None = None) -> RenderResult:
-    """The studio's render of ``frame`` from ``camera`` (world = head space) lit by ``envmap``."""
-    return _studio(subject, settings).render_lights(frame, camera, envmap_truth_lights(envmap, directions),
-                                                    noise=False)
+    """The studio's render of ``frame`` from ``camera`` (posed in head space = world) lit by ``envmap``."""
+    return _studio(subject, settings).render_lights(frame, studio_camera(camera),
+                                                    envmap_truth_lights(envmap, directions), noise=False)
 
 
 def render_point_truth(subject: Subject, frame: FrameState, camera: Camera, position_world: np.ndarray,
                        intensity_rgb: np.ndarray, settings: RenderSettings | None = None) -> RenderResult:
     """The studio's render under one isotropic point light (near-field: 1/r^2 and shadows per pixel)."""
     light = PointLight(np.asarray(position_world, float), np.asarray(intensity_rgb, float))
-    return _studio(subject, settings).render_lights(frame, camera, [light], noise=False)
+    return _studio(subject, settings).render_lights(frame, studio_camera(camera), [light], noise=False)

@@ -23,7 +23,7 @@ from stages.calibrate.board import Detection
 class BundleResult:
     """Refined cameras (in the rig frame) and board poses, with pycolmap's summary."""
 
-    cameras: dict[str, Camera]  # cam_from_world = cam_from_rig
+    cameras: dict[str, Camera]  # posed in the rig frame (cam_from_rig)
     rig_from_board: dict[int, Rigid]
     initial_cost: float
     final_cost: float
@@ -70,7 +70,7 @@ def _camera_from_colmap(name: str, c, cam_from_rig: Rigid) -> Camera:
         fx, fy, cx, cy = p[:4]
         dist = (p[4], p[5], p[6], p[7], p[8] if model == "FULL_OPENCV" else 0.0)
     return Camera(name=name, width=int(c.width), height=int(c.height), fx=fx, fy=fy, cx=cx, cy=cy,
-                  dist=dist, cam_from_world=cam_from_rig)
+                  dist=dist, pose=cam_from_rig, frame="rig")
 
 
 def build_reconstruction(cameras: dict[str, Camera], rig_from_frame: dict[int, Rigid],
@@ -93,7 +93,7 @@ def build_reconstruction(cameras: dict[str, Camera], rig_from_frame: dict[int, R
     rig.add_ref_sensor(rec.camera(cam_ids[ref]).sensor_id)
     for n in names:
         if n != ref:
-            rig.add_sensor(rec.camera(cam_ids[n]).sensor_id, _rigid3d(cameras[n].cam_from_world))
+            rig.add_sensor(rec.camera(cam_ids[n]).sensor_id, _rigid3d(cameras[n].cam_from_rig))
     rec.add_rig(rig)
     point_ids: dict[tuple[int, int], int] = {}
     if points_in_frame is None:
@@ -177,7 +177,7 @@ def export_colmap(out_dir: Path, cameras_world: dict[str, Camera], detections: d
     the board corners of each pose as 3D points in world metres, observed by the images.
     """
     ref_from_world = cameras_world[ref].cam_from_world
-    in_rig = {n: c.with_pose(c.cam_from_world @ ref_from_world.inverse()) for n, c in cameras_world.items()}
+    in_rig = {n: c.with_pose(c.cam_from_world @ ref_from_world.inverse(), "rig") for n, c in cameras_world.items()}
     frames = {f: ref_from_world for f in world_from_board}
     points = {f: pose.apply(corners_board) for f, pose in world_from_board.items()}
     rec, _ = build_reconstruction(in_rig, frames, detections, points, corners_board, ref, model)

@@ -43,7 +43,7 @@ class CalibrateOutput(StageOutput):
 
     def cameras(self) -> list[Camera]:
         """The calibrated cameras at the performance resolution (``cam_from_world``: the studio world)."""
-        return self.load(self.cameras_path, load_cameras)
+        return self.load(self.cameras_path, lambda path: load_cameras(path, "world"))
 
     def write_cameras(self, cameras: list[Camera]) -> None:
         save_cameras(self.cameras_path, cameras)
@@ -56,8 +56,8 @@ class CalibrateOutput(StageOutput):
         return self.cameras_native_path.is_file()
 
     def cameras_native(self) -> list[Camera]:
-        """The calibrated cameras at the board images' resolution."""
-        return self.load(self.cameras_native_path, load_cameras)
+        """The calibrated cameras at the board images' resolution (``cam_from_world``)."""
+        return self.load(self.cameras_native_path, lambda path: load_cameras(path, "world"))
 
     def write_cameras_native(self, cameras: list[Camera]) -> None:
         save_cameras(self.cameras_native_path, cameras)

@@ -171,7 +171,7 @@ def run(ctx: StageContext) -> None:
 
     initial = {n: Camera(name=n, width=sizes[n][0], height=sizes[n][1], fx=float(intr[n].K[0, 0]),
                          fy=float(intr[n].K[1, 1]), cx=float(intr[n].K[0, 2]), cy=float(intr[n].K[1, 2]),
-                         dist=tuple(float(v) for v in intr[n].dist), cam_from_world=cam_from_rig[n])  # type: ignore[arg-type]
+                         dist=tuple(float(v) for v in intr[n].dist), pose=cam_from_rig[n], frame="rig")  # type: ignore[arg-type]
                for n in names}
     ba = bundle_adjust(initial, rig_from_board, detections, corners_board, ref, params.loss_scale_px,
                        params.max_iterations, params.camera_model)
@@ -179,7 +179,7 @@ def run(ctx: StageContext) -> None:
 
     # the studio world: the fixture frame's board pose is known in it
     rig_from_world = ba.rig_from_board[reference_frame] @ spec.world_from_board_reference.inverse()
-    cameras = [ba.cameras[n].with_pose(ba.cameras[n].cam_from_world @ rig_from_world) for n in names]
+    cameras = [ba.cameras[n].with_pose(ba.cameras[n].cam_from_rig @ rig_from_world, "world") for n in names]
     world_from_board = {f: rig_from_world.inverse() @ p for f, p in ba.rig_from_board.items()}
 
     out.write_cameras_native(cameras)

@@ -260,7 +260,7 @@ class CaptureTruth(StageOutput):
 
     def cameras(self) -> list[Camera]:
         """The true cameras at the performance resolution."""
-        return self.load(self.cameras_path, load_cameras)
+        return self.load(self.cameras_path, lambda path: load_cameras(path, "world"))
 
     def write_cameras(self, cameras: list[Camera]) -> None:
         save_cameras(self.cameras_path, cameras)

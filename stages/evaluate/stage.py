@@ -130,7 +130,7 @@ class _Sweeper:
                geometry=None) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
         """Per camera: (model rgb, truth rgb, truth alpha), [H, W, 3] / [H, W] linear."""
         from avatar.render import PointLights, decode, render
-        from hardware.studio.envmap_truth import frame_from_weights
+        from hardware.studio.envmap_truth import frame_from_weights, studio_camera
         from scene.lights import PointLight
 
         if geometry is None:
@@ -143,8 +143,8 @@ class _Sweeper:
                                  steps=self.steps).numpy()
             self.model_seconds += time.perf_counter() - start
             start = time.perf_counter()
-            truth = self.studio.render_lights(frame, camera, [PointLight(np.asarray(light_head, float), np.ones(3))],
-                                              noise=False)
+            truth = self.studio.render_lights(frame, studio_camera(camera),
+                                              [PointLight(np.asarray(light_head, float), np.ones(3))], noise=False)
             self.truth_seconds += time.perf_counter() - start
             out.append((pred_rgb, truth.rgb, truth.alpha))
         return out

@@ -74,7 +74,7 @@ def run(ctx: StageContext) -> None:
             kind = rec.get("kind")
             if kind not in ("envmap", "point") or rec.get("mesh_index", 0) != 0:
                 continue
-            camera = Camera.from_dict(rec["camera"])
+            camera = Camera.from_dict(rec["camera"], "head")
             if kind == "envmap":
                 envmap = read_envmap(rec["envmap"]).rotated_about_y(math.radians(rec["rotation_deg"]))
                 truth = render_envmap_truth(subject, frame, camera, envmap, params.truth_directions)

@@ -1,7 +1,7 @@
 """One relight frame as an executor item: what a worker needs to render it, its cache key, the render.
 
 Rendering itself is ``avatar.render.render`` (the voxel-space light sum; see there). Everything
-here is in head space: cameras (``cam_from_head`` as the camera's extrinsics) and light
+here is in head space: cameras posed in the head frame (``cam_from_head``) and light
 positions are head-space points, as the network was trained on.
 
 ``render_frame`` renders one ``FrameItem`` (paths and numbers) in a worker: the stage fans
@@ -37,7 +37,7 @@ class FrameItem:
     mesh_array: str  # its array ("default", "expressions")
     mesh_index: int
     mesh_digest: str
-    camera: Camera  # cam_from_head extrinsics
+    camera: Camera  # posed in the head frame
     light_pos: np.ndarray  # [K, 3] head space
     light_rgb: np.ndarray  # [K, 3]
     steps: int

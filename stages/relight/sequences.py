@@ -31,7 +31,7 @@ class FrameSpec:
     """One frame to render.
 
     Attributes:
-        camera: camera with ``cam_from_world`` = cam_from_head.
+        camera: camera posed in the head frame (``cam_from_head``).
         light_pos: [K, 3] head-space light positions (distant lights: far along their direction).
         light_rgb: [K, 3] light colours/intensities multiplying the network's unit-light output.
         mesh_index: which driving mesh (row of the sequence's mesh array) to decode.

@@ -6,9 +6,9 @@ cameras). The file format (``cameras_head.json``)::
 
     {"frames": {"<index>": [Camera.to_dict(), ...]}, "space": "head"}
 
-Each camera dict is ``scene.camera.Camera.to_dict`` with its ``cam_from_world`` entry
-holding ``cam_from_head`` (read back with ``Camera.from_dict``: the "world" of those
-cameras is the head frame, metres).
+Each camera dict is ``scene.camera.Camera.to_dict`` of a camera posed in the head frame: its
+pose is under ``cam_from_head`` (metres). Files written before poses named their frame hold
+it under ``cam_from_world``; they are read as head-frame poses too.
 """
 
 from __future__ import annotations
@@ -23,8 +23,8 @@ from scene.camera import Camera, Rigid
 
 
 def cameras_in_head_space(cameras: Sequence[Camera], world_from_head: Rigid) -> list[Camera]:
-    """The cameras with ``cam_from_world`` replaced by ``cam_from_head`` for one head pose."""
-    return [cam.with_pose(cam.cam_from_world @ world_from_head) for cam in cameras]
+    """The world-posed cameras posed in the head frame (``cam_from_head``) for one head pose."""
+    return [cam.with_pose(cam.cam_from_world @ world_from_head, "head") for cam in cameras]
 
 
 def write_cameras_head(path: Path, index: Sequence[int], world_from_head_R: np.ndarray,
@@ -37,7 +37,7 @@ def write_cameras_head(path: Path, index: Sequence[int], world_from_head_R: np.n
 
 
 def read_cameras_head(path: Path) -> dict[int, list[Camera]]:
-    """Read ``cameras_head.json``: frame index -> cameras whose ``cam_from_world`` is ``cam_from_head``.
+    """Read ``cameras_head.json``: frame index -> cameras posed in the head frame (``cam_from_head``).
 
     Raises ``ValueError`` naming the file when it is not such a file.
     """
@@ -52,7 +52,8 @@ def parse_cameras_head(data: dict) -> dict[int, list[Camera]]:
     """The cameras of a parsed ``cameras_head.json``.
 
     Besides the format above, reads the frames as a list (``[{"index", "cameras"}]``), the
-    cameras of a frame as a dict, and a camera's pose under ``cam_from_head``.
+    cameras of a frame as a dict, and a camera's pose under ``cam_from_world`` (files written
+    before poses named their frame), read as ``cam_from_head``.
     """
     frames = data["frames"]
     if isinstance(frames, dict):
@@ -60,11 +61,6 @@ def parse_cameras_head(data: dict) -> dict[int, list[Camera]]:
     result: dict[int, list[Camera]] = {}
     for entry in frames:
         cams = entry["cameras"]
-        per_frame = []
-        for d in (cams.values() if isinstance(cams, dict) else cams):
-            d = dict(d)
-            if "cam_from_head" in d:
-                d["cam_from_world"] = d.pop("cam_from_head")
-            per_frame.append(Camera.from_dict(d))
+        per_frame = [Camera.from_dict(d, "head") for d in (cams.values() if isinstance(cams, dict) else cams)]
         result[int(entry["index"])] = per_frame
     return result

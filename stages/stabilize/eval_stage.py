@@ -38,9 +38,9 @@ def run(ctx: StageContext) -> None:
             if cam.name not in true_cams:
                 continue
             true_cam_from_head = true_cams[cam.name].cam_from_world @ true_pose[index]
-            rel = cam.cam_from_world.R @ true_cam_from_head.R.T
+            rel = cam.cam_from_head.R @ true_cam_from_head.R.T
             angles.append(np.degrees(np.arccos(np.clip((np.trace(rel) - 1) / 2, -1, 1))))
-            centre_est = cam.cam_from_world.inverse().t
+            centre_est = cam.cam_from_head.inverse().t
             centre_true = true_cam_from_head.inverse().t
             centres_mm.append(np.linalg.norm(centre_est - centre_true) * 1000)
     if not angles:

@@ -35,11 +35,11 @@ class StabilizeOutput(StageOutput):
         return self.file(_CAMERAS_HEAD)
 
     def cameras_head(self) -> dict[int, list[Camera]]:
-        """Frame index -> cameras whose ``cam_from_world`` entry holds ``cam_from_head``."""
+        """Frame index -> cameras posed in the head frame (``cam_from_head``)."""
         return self.load(self.cameras_head_path, read_cameras_head)
 
     def cameras_head_by_name(self) -> dict[int, dict[str, Camera]]:
-        """Frame index -> camera name -> camera (``cam_from_world`` holds ``cam_from_head``)."""
+        """Frame index -> camera name -> camera posed in the head frame."""
         return {index: {cam.name: cam for cam in cams} for index, cams in self.cameras_head().items()}
 
     def write_cameras_head(self, index: Sequence[int], world_from_head_R: np.ndarray,

@@ -82,7 +82,7 @@ class TrackOutput(StageOutput):
 
     def cameras(self) -> list[Camera]:
         """The calibrated cameras the fit used."""
-        return self.load(self.cameras_path, load_cameras)
+        return self.load(self.cameras_path, lambda path: load_cameras(path, "world"))
 
     def write_cameras(self, cameras: list[Camera]) -> None:
         save_cameras(self.cameras_path, cameras)

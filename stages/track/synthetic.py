@@ -72,7 +72,7 @@ def make_scene(frames: int = 8, landmarks: int = 100, cameras: int = 6, seed: in
         el = np.radians(12 * ((k % 3) - 1))
         eye = target + np.array([np.sin(az) * np.cos(el), np.sin(el), np.cos(az) * np.cos(el)])
         cams.append(Camera(f"cam{k:02d}", 400, 300, 700.0, 700.0, 199.5, 149.5, dist=(-0.05, 0.01, 0, 0, 0),
-                           cam_from_world=look_at(eye, target)))
+                           pose=look_at(eye, target)))
     times = np.arange(frames) / 8.0
     weights = np.clip(0.5 + 0.5 * np.sin(times[:, None] * np.arange(1, 7)[None] + np.arange(6)[None]), 0, 1)
     weights[0] = 0.0  # the actor starts neutral

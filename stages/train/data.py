@@ -101,7 +101,7 @@ def _image_array(shape: tuple[int, ...], spill_dir: Path | None, name: str) -> n
 
 def _pixel_directions(cam: Camera) -> np.ndarray:
     """Unit directions [H*W, 3] of ``cam``'s pixel centres in its own frame."""
-    at_origin = replace(cam, cam_from_world=Rigid(np.eye(3), np.zeros(3)))
+    at_origin = replace(cam, pose=Rigid(np.eye(3), np.zeros(3)))
     _, dirs = at_origin.image_rays()
     return dirs.reshape(-1, 3)
 
@@ -206,8 +206,8 @@ def load_train_data(inputs: dict[str, Path], image_width_px: int, log, max_frame
                 raise InputError(f"{stabilize.cameras_head_path}: camera '{name}' has other intrinsics in frame "
                                  f"{idx} than in frame {frames[0][0]}; a camera's lens must be the same in every "
                                  "frame (re-run calibrate and stabilize)")
-            head_from_cam[i, j] = cam_small.cam_from_world.R.T
-            cam_pos[i, j] = cam_small.center_world
+            head_from_cam[i, j] = cam_small.cam_from_head.R.T
+            cam_pos[i, j] = cam_small.center
     log.info("train data: %d OLAT frames x %d cameras at %dx%d px", nf, nc, width, height)
     return TrainData(
         frame_index=np.array([f[0] for f in frames]), take=np.array([f[1] for f in frames]),

@@ -30,7 +30,7 @@ def travatar():
 
 def _camera(width: int = 16, height: int = 20) -> Camera:
     cam = Camera("test", width, height, fx=40.0, fy=40.0, cx=width / 2 - 0.5, cy=height / 2 - 0.5)
-    return cam.with_pose(look_at(np.array([0.1, 0.05, 0.6]), np.zeros(3)))
+    return cam.with_pose(look_at(np.array([0.1, 0.05, 0.6]), np.zeros(3)), "head")
 
 
 def _sky(count: int = 20):
@@ -141,6 +141,9 @@ def test_clear_errors(ours, travatar):
         PointLights(np.zeros((2, 3)), np.ones((3, 3)))
     with pytest.raises(ValueError, match="method"):
         render(model, verts, _camera(), PointLights(np.ones((1, 3))), method="fastest")  # type: ignore[arg-type]
+    world_camera = _camera().with_pose(_camera().cam_from_head, "world")  # a frame mix-up
+    with pytest.raises(ValueError, match="world frame.*cam_from_head"):
+        render(model, verts, world_camera, PointLights(np.ones((1, 3))))
     trav, trav_verts = travatar
     with pytest.raises(ValueError, match="light basis"):
         render(trav, trav_verts, _camera(), PointLights(np.ones((1, 3))))

@@ -215,7 +215,7 @@ def test_volume_reprojection_sees_through_the_pp_rotation_trade(calib_capture):
         angle = np.arctan2(2.0, c.fx)  # 2 px of principal point = this rotation about the camera's y axis
         Ry = np.array([[np.cos(angle), 0, np.sin(angle)], [0, 1, 0], [-np.sin(angle), 0, np.cos(angle)]])
         turned = Rigid(Ry @ c.cam_from_world.R, Ry @ c.cam_from_world.t)
-        traded[n] = replace(c, cx=c.cx - 2.0, cam_from_world=turned)
+        traded[n] = replace(c, cx=c.cx - 2.0, pose=turned)
         shifted[n] = replace(c, cx=c.cx - 2.0)
     assert camera_errors(traded, true)["rotation_err_deg_max"] > 0.1
     assert volume_reprojection_px(traded, true)["volume_reproj_err_px_max"] < 0.3

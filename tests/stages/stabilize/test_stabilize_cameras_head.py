@@ -17,7 +17,7 @@ from stages.stabilize.stage import STAGE as STABILIZE
 
 def _cameras() -> list[Camera]:
     return [Camera(f"cam{k:02d}", 240, 320, 860.0, 860.0, 119.5, 159.5, dist=(0.01, 0, 0, 0, 0),
-                   cam_from_world=look_at(np.array([np.sin(a), 0.1, np.cos(a)]), np.zeros(3)))
+                   pose=look_at(np.array([np.sin(a), 0.1, np.cos(a)]), np.zeros(3)))
             for k, a in enumerate(np.radians([-40.0, 0.0, 35.0]))]
 
 
@@ -37,7 +37,7 @@ def test_head_space_camera_sees_the_head_point_where_the_world_camera_sees_the_w
         uv_head, z_head = head_cam.project(points_head)
         assert np.allclose(uv_world, uv_head) and np.allclose(z_world, z_head)
         # The head-space camera centre is the world centre brought into head space.
-        assert np.allclose(head_cam.center_world, world_from_head.inverse().apply(cam.center_world))
+        assert np.allclose(head_cam.center, world_from_head.inverse().apply(cam.center_world))
 
 
 def test_cameras_head_file_round_trip(tmp_path):
@@ -47,7 +47,7 @@ def test_cameras_head_file_round_trip(tmp_path):
     back = read_cameras_head(tmp_path / "cameras_head.json")
     assert sorted(back) == [0, 3, 6, 9] and len(back[6]) == 3
     expected = cams[1].cam_from_world @ Rigid(R[2], t[2])
-    assert np.allclose(back[6][1].cam_from_world.matrix(), expected.matrix())
+    assert np.allclose(back[6][1].cam_from_head.matrix(), expected.matrix())
     assert back[6][1].dist == cams[1].dist
     (tmp_path / "bad.json").write_text("{}")
     with pytest.raises(ValueError, match="bad.json"):
@@ -89,3 +89,22 @@ def test_stage_rejects_a_broken_tracking_file(tmp_path):
     np.savez(track / "tracking.npz", index=np.arange(3), world_from_head_R=R)
     with pytest.raises(InputError, match="world_from_head_t"):
         run_stage_for_test(STABILIZE, tmp_path / "work", inputs={"track": track, "calibrate": calibrate})
+
+
+def test_cameras_head_file_names_the_head_frame_and_reads_the_earlier_key(tmp_path):
+    cams = _cameras()
+    R, t = _poses(2)
+    path = tmp_path / "cameras_head.json"
+    write_cameras_head(path, [0, 1], R, t, cams)
+    text = path.read_text()
+    assert '"cam_from_head"' in text and '"cam_from_world"' not in text
+    new = read_cameras_head(path)
+    # A file written before poses named their frame: the same poses under cam_from_world.
+    path.write_text(text.replace('"cam_from_head"', '"cam_from_world"'))
+    old = read_cameras_head(path)
+    for index in (0, 1):
+        for a, b in zip(new[index], old[index]):
+            assert a.frame == b.frame == "head"
+            assert np.array_equal(a.cam_from_head.matrix(), b.cam_from_head.matrix())
+            with pytest.raises(ValueError, match="head frame"):
+                b.cam_from_world

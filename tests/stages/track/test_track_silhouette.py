@@ -36,7 +36,7 @@ def test_image_contour_finds_the_edge_to_a_tenth_of_a_pixel():
 def test_occluding_contour_of_a_sphere_matches_its_image_outline():
     sphere = trimesh.creation.icosphere(subdivisions=4, radius=0.1)
     verts, faces = np.asarray(sphere.vertices), np.asarray(sphere.faces)
-    cam = Camera("cam00", 160, 160, 400.0, 400.0, 79.5, 79.5, cam_from_world=look_at(np.array([0, 0, 1.0]), np.zeros(3)))
+    cam = Camera("cam00", 160, 160, 400.0, 400.0, 79.5, 79.5, pose=look_at(np.array([0, 0, 1.0]), np.zeros(3)))
     cams = PinholeArrays.from_cameras([cam])
     # The true outline of a sphere of radius r at distance d: a circle of radius f r / sqrt(d^2 - r^2).
     radius_px = 400.0 * 0.1 / np.sqrt(1.0 - 0.01)

@@ -25,7 +25,7 @@ def test_pixel_directions_rotated_into_head_space_equal_the_cameras_rays():
     # the pose, must be the rays the camera model itself gives for every pixel.
     cam = Camera(name="c", width=20, height=14, fx=30.0, fy=31.0, cx=9.3, cy=7.1,
                  dist=(-0.21, 0.08, 0.004, -0.003, -0.01),
-                 cam_from_world=look_at(np.array([0.3, 0.1, 1.2]), np.zeros(3), np.array([0.0, 1.0, 0.0])))
+                 pose=look_at(np.array([0.3, 0.1, 1.2]), np.zeros(3), np.array([0.0, 1.0, 0.0])))
     origins, dirs = cam.image_rays()
     rotated = _pixel_directions(cam) @ cam.cam_from_world.R  # (R^T d) for every row d
     np.testing.assert_allclose(rotated, dirs.reshape(-1, 3), atol=1e-9)

@@ -40,7 +40,7 @@ def make_capture(root: Path, width_px: int = 48, cameras: int = 6, frames_per_ta
     for spec in rig.cameras[:cameras]:
         pose = look_at(np.array(spec.position_m), np.array(spec.look_at_m))
         cam = Camera(spec.name, rig.width_px, rig.height_px, spec.focal_px, spec.focal_px,
-                     rig.width_px / 2 - 0.5, rig.height_px / 2 - 0.5, cam_from_world=pose)
+                     rig.width_px / 2 - 0.5, rig.height_px / 2 - 0.5, pose=pose)
         cams.append(cam.scaled(scale))
     bars = rig.bars
     names = list(face.expression_names)
@@ -103,7 +103,7 @@ def make_capture(root: Path, width_px: int = 48, cameras: int = 6, frames_per_ta
                 write_exr(out["capture"] / "frames" / cam.name / f"{index:06d}.exr", img.astype(np.float32))
                 write_png16(out["matte"] / "mattes" / cam.name / f"{index:06d}.png", matte.reshape(cam.height, cam.width))
                 cam_from_head = cam.cam_from_world @ world_from_head
-                frame_cams.append(cam.with_pose(cam_from_head).to_dict())
+                frame_cams.append(cam.with_pose(cam_from_head, "head").to_dict())
             manifest_frames.append({"index": index, "take": take, "time_s": index / 24.0, "light": light, "status": "ok"})
             meshes.append(verts.astype(np.float32))
             rots.append(world_from_head.R)
@@ -114,7 +114,7 @@ def make_capture(root: Path, width_px: int = 48, cameras: int = 6, frames_per_ta
     manifest = {"subject": "synthetic", "fps": 24.0, "width": cams[0].width, "height": cams[0].height,
                 "cameras": [c.name for c in cams], "bars": len(bars), "takes": takes, "frames": manifest_frames}
     (out["capture"] / "manifest.json").write_text(json.dumps(manifest))
-    # The stabilize stage's format: {"frames": {"<index>": [Camera.to_dict() with cam_from_head]}}.
+    # The stabilize stage's format: {"frames": {"<index>": [Camera.to_dict() of head-frame cameras]}}.
     (out["stabilize"] / "cameras_head.json").write_text(json.dumps(
         {"space": "head", "frames": {str(f["index"]): f["cameras"] for f in cam_frames}}))
     np.savez(out["track"] / "meshes.npz", index=np.array(indices), vertices=np.stack(meshes),
