@@ -40,7 +40,7 @@ from pydantic import Field
 
 from avatar.render import PointLights, RenderMethod, decode, render
 from pipeline.devices import DeviceChoice, resolve_device
-from pipeline.errors import ConfigError, InputError
+from pipeline.errors import InputError
 from pipeline.hashing import hash_path
 from pipeline.itemcache import stage_item_cache
 from pipeline.stage import Stage, StageContext, StageParams
@@ -217,8 +217,6 @@ def render_sequence(ctx: StageContext, source: FrameSource, name: str, frames: l
 
 def run(ctx: StageContext) -> None:
     params: RelightParams = ctx.params
-    if params.light_method not in ("uniform", "adaptive"):
-        raise ConfigError(f"relight.light_method: '{params.light_method}' is not one of 'uniform', 'adaptive'")
     device = resolve_device(params.device, "relight.device")
     model, meta, default_mesh, expressions = load_inputs(dict(ctx.inputs), params, device)
     steps = params.steps_per_ray or model.config.steps_per_ray
