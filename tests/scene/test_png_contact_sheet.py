@@ -135,6 +135,21 @@ def test_srgb8_matches_the_old_inline_quantisers() -> None:
         assert np.array_equal(srgb8(img, exposure), old)
 
 
+def test_track_detector_image_unchanged() -> None:
+    from stages.track.landmarks import DetectorParams, to_detector_image
+
+    rng = np.random.default_rng(7)
+    linear = _linear(rng, 40, 30, scale=0.2)
+    linear[3, 4, 1] = np.nan
+    params = DetectorParams()
+    rgb = np.nan_to_num(linear, nan=0.0, posinf=0.0, neginf=0.0)
+    from scene.colour import luminance
+
+    level = float(np.percentile(luminance(np.maximum(rgb, 0.0)), params.exposure_percentile))
+    old = np.round(srgb_encode(rgb * (params.exposure_target / level)) * 255.0).astype(np.uint8)
+    assert np.array_equal(to_detector_image(linear, params), old)
+
+
 @pytest.mark.parametrize("size,columns,count", [((64, 48), 5, 7), ((256, 192), 5, 5), ((40, 30), 3, 2)])
 def test_capture_contact_sheet_and_strip_bytes_unchanged(tmp_path: Path, size, columns, count) -> None:
     from stages.capture.previews import contact_sheet, strip
