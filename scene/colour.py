@@ -21,3 +21,12 @@ def luminance(linear_rgb: np.ndarray) -> np.ndarray:
     """Rec. 709 relative luminance of linear RGB [..., 3] -> [...]."""
     rgb = np.asarray(linear_rgb, dtype=np.float32)
     return rgb[..., 0] * 0.2126 + rgb[..., 1] * 0.7152 + rgb[..., 2] * 0.0722
+
+
+def srgb8(linear: np.ndarray, exposure: float = 1.0) -> np.ndarray:
+    """Linear RGB (or grey) times ``exposure`` -> 8-bit sRGB, same shape, uint8.
+
+    The one linear-to-display quantiser of the project's PNGs: float32, ``srgb_encode``,
+    ``round(x * 255)``.
+    """
+    return np.round(srgb_encode(np.asarray(linear, dtype=np.float32) * exposure) * 255.0).astype(np.uint8)

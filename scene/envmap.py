@@ -40,6 +40,8 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
+from pydantic import ConfigDict, Field
+from pydantic.dataclasses import dataclass as pydantic_dataclass
 
 from scene.colour import luminance
 
@@ -248,20 +250,22 @@ class DirectionalLights:
         return self.irradiance_rgb.sum(axis=0)
 
 
-@dataclass(frozen=True)
+@pydantic_dataclass(frozen=True, config=ConfigDict(extra="forbid"))
 class BackMask:
     """The paper's treatment of light from behind the head (never seen in training).
 
-    Attributes:
-        cone_half_angle_deg: directions within this angle of the back direction (-z) are dropped.
-        attenuation_power: the rest of the back hemisphere is scaled by ``cos(theta)**power``,
-            theta the angle below the side plane (z = 0): 1 at the side, 0 straight behind.
-        enabled: False keeps the whole sphere (ground-truth renders, tests).
+    The one declaration of the back mask: relight nests it as ``relight.back_mask``.
     """
 
-    cone_half_angle_deg: float = 45.0
-    attenuation_power: float = 4.0
-    enabled: bool = True
+    cone_half_angle_deg: float = Field(
+        45.0, ge=0.0, le=180.0, description="Directions within this angle of the back direction (-z) are "
+        "dropped. Widen it if relit heads show light bleeding in from behind; 0 keeps the whole back hemisphere "
+        "(attenuated).")
+    attenuation_power: float = Field(
+        4.0, ge=0.0, description="The rest of the back hemisphere is scaled by cos(theta)**power, theta the angle "
+        "below the side plane (z = 0): 1 at the side, 0 straight behind. Higher darkens back light faster.")
+    enabled: bool = Field(
+        True, description="False keeps the whole sphere unattenuated (ground-truth renders, tests).")
 
     def weights(self, directions_world: np.ndarray) -> np.ndarray:
         """Attenuation in [0, 1] of unit directions [..., 3] -> [...]."""
@@ -337,29 +341,29 @@ def select_uniform(envmap: EnvMap, count: int = 256, drop_fraction: float = 0.1,
 
 # ---- adaptive selection ------------------------------------------------------------------------
 
-@dataclass(frozen=True)
+@pydantic_dataclass(frozen=True, config=ConfigDict(extra="forbid"))
 class AdaptiveParams:
     """Adaptive (importance-sampled) light selection.
 
-    Attributes:
-        tolerance: stop when the estimated error (the worst probe's relative error) is below.
-        min_directions, max_directions: bounds on the number of lights.
-        working_height: the map is box-filtered (energy-preserving) to this many rows first.
-        probe_count: surface normals on which the error is estimated.
-        probe_gloss: Phong exponent of the glossy half of the probe's reflectance (skin-like
-            sheen); the other half is Lambertian.
-        probe_floor: the error of each probe is relative to its own response plus this many
-            times the map's background level (its median radiance), so the side of the head
-            in shadow counts as much as the lit side and a pure black side does not blow up.
+    The one declaration of these settings: relight nests it as ``relight.adaptive``.
     """
 
-    tolerance: float = 0.1
-    min_directions: int = 8
-    max_directions: int = 1024
-    working_height: int = 128
-    probe_count: int = 96
-    probe_gloss: float = 8.0
-    probe_floor: float = 1.0
+    tolerance: float = Field(
+        0.1, gt=0.0, description="Stop adding lights when the estimated error (the worst probe's relative error) "
+        "is below this. Lower it for more accurate, slower relighting.")
+    min_directions: int = Field(8, ge=1, description="Fewest lights the selection returns.")
+    max_directions: int = Field(1024, ge=1, description="Most lights the selection returns, whatever the error.")
+    working_height: int = Field(
+        128, ge=1, description="The map is box-filtered (energy-preserving) to this many rows first; raise it for "
+        "maps with very small bright sources.")
+    probe_count: int = Field(96, ge=1, description="Surface normals on which the error is estimated.")
+    probe_gloss: float = Field(
+        8.0, ge=0.0, description="Phong exponent of the glossy half of the probe's reflectance (skin-like sheen); "
+        "the other half is Lambertian.")
+    probe_floor: float = Field(
+        1.0, ge=0.0, description="The error of each probe is relative to its own response plus this many times "
+        "the map's background level (its median radiance), so the side of the head in shadow counts as much as "
+        "the lit side and a pure black side does not blow up.")
 
 
 def _downsample(energy: np.ndarray, height: int) -> np.ndarray:

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from scene.colour import srgb_decode, srgb_encode
+from scene.colour import srgb8, srgb_decode
 
 _CHANNEL_SETS = {1: ("Y",), 2: ("Y", "A"), 3: ("R", "G", "B"), 4: ("R", "G", "B", "A")}
 
@@ -70,16 +70,25 @@ def read_exr(path: str | Path) -> np.ndarray:
         raise ValueError(f"{path}: EXR channels have different sizes ({err})") from err
 
 
-def write_png_srgb(path: str | Path, linear_rgb: np.ndarray, exposure: float = 1.0) -> None:
-    """Write linear RGB [H, W, 3] (or grey [H, W]) times ``exposure`` as an 8-bit sRGB PNG."""
+def write_png8(path: str | Path, image: np.ndarray) -> None:
+    """Write a uint8 image, RGB [H, W, 3] or grey [H, W], as a PNG (OpenCV's default compression).
+
+    The one PNG writer of the project's 8-bit images; raises ``ValueError`` naming the file.
+    """
     import cv2
 
-    img = srgb_encode(np.asarray(linear_rgb, dtype=np.float32) * exposure)
-    img8 = np.round(img * 255.0).astype(np.uint8)
+    img8 = np.asarray(image)
+    if img8.dtype != np.uint8:
+        raise ValueError(f"{path}: write_png8 takes uint8 images, got {img8.dtype}")
     if img8.ndim == 3 and img8.shape[2] == 3:
         img8 = img8[..., ::-1]  # OpenCV writes BGR
     if not cv2.imwrite(str(path), np.ascontiguousarray(img8)):
         raise ValueError(f"{path}: could not write PNG (does the folder exist?)")
+
+
+def write_png_srgb(path: str | Path, linear_rgb: np.ndarray, exposure: float = 1.0) -> None:
+    """Write linear RGB [H, W, 3] (or grey [H, W]) times ``exposure`` as an 8-bit sRGB PNG."""
+    write_png8(path, srgb8(linear_rgb, exposure))
 
 
 def read_png(path: str | Path, linear: bool = False) -> np.ndarray:

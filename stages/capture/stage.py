@@ -32,6 +32,7 @@ from pathlib import Path
 import numpy as np
 from pydantic import Field, field_validator
 
+from hardware.studio.renderer import RenderSettings
 from pipeline.errors import ConfigError
 from pipeline.stage import Stage, StageContext, StageParams
 from scene.rig import RigConfig, default_rig
@@ -55,12 +56,10 @@ class CaptureParams(StageParams):
     image_scale: float = Field(1.0, gt=0, le=2,
                                description="Image size relative to the rig's reference 768x1024 (0.3125 = 240x320).")
     texture_size: int = Field(1024, ge=64, description="Height of the subject's UV material tiles, pixels.")
-    edge_samples: int = Field(4, ge=1, le=8, description="n for n x n antialiasing samples on silhouette pixels.")
-    bar_samples: int = Field(4, ge=1, description="Shadow samples per bar and pixel in OLAT frames.")
-    full_on_bar_samples: int = Field(2, ge=1, description="Shadow samples per bar and pixel in full-on frames.")
-    shot_noise_gain: float = Field(2e-4, ge=0, description="Sensor shot-noise variance per unit of signal.")
-    read_noise: float = Field(1e-3, ge=0, description="Sensor read-noise standard deviation (linear units).")
-    noise_seed: int = Field(0, description="Seed of the sensor noise and light-sample jitter.")
+    render: RenderSettings = Field(
+        default_factory=RenderSettings,
+        description="How the virtual studio renders (antialiasing and light samples, sensor noise, their seed); "
+        "see hardware.studio.RenderSettings. Ignored when source imports a real capture.")
     head_motion_deg: float = Field(4.0, ge=0, description="Amplitude of the subject's natural head yaw, degrees.")
     rom_pose_seconds: float = Field(0.6, gt=0, description="Duration of one range-of-motion pose, seconds.")
     drop_frames: tuple[int, ...] = Field((), description="Trigger indices whose images every camera loses (simulated drops).")
@@ -139,7 +138,7 @@ def _split_takes(n: int, takes: tuple[str, ...], cycle: int) -> list[int]:
 
 def _virtual_capture(ctx: StageContext, params: CaptureParams) -> dict:
     from hardware.led import Faults, run_emulated_session
-    from hardware.studio import RenderSettings, make_performance, make_subject, scan_session
+    from hardware.studio import make_performance, make_subject, scan_session
     from pipeline.itemcache import stage_item_cache
     from stages.capture.placement import label_and_place
     from stages.capture.virtual import RenderTask, place_pulse, pulse_key, render_task
@@ -172,10 +171,7 @@ def _virtual_capture(ctx: StageContext, params: CaptureParams) -> dict:
     seed = params.identity_seed if params.performance_seed is None else params.performance_seed
     performance = make_performance(seed, params.takes, counts, fps, params.rom_pose_seconds,
                                    np.asarray(rig.head_center_m), head_motion_deg=params.head_motion_deg)
-    settings = RenderSettings(edge_samples=params.edge_samples, bar_samples=params.bar_samples,
-                              full_on_bar_samples=params.full_on_bar_samples,
-                              shot_noise_gain=params.shot_noise_gain, read_noise=params.read_noise,
-                              seed=params.noise_seed)
+    settings = params.render
     truth = ctx.extra_outputs["truth"]
     true_out = CaptureTruth(truth)
     arrivals: list[list[tuple[int, ...]]] = [[() for _ in streams] for _ in range(n_frames)]
@@ -207,7 +203,7 @@ def _virtual_capture(ctx: StageContext, params: CaptureParams) -> dict:
 
     frame_times = None
     if params.camera_timestamp_jitter_s is not None:
-        rng = np.random.default_rng([params.noise_seed, 7])
+        rng = np.random.default_rng([params.render.seed, 7])
         frame_times = [[i / fps + params.camera_timestamp_jitter_s * rng.standard_normal() for i in stream]
                        for stream in streams]
     manifest, label_metrics = label_and_place(ctx, fps, cam_names, len(rig.bars), params.takes,
@@ -279,7 +275,7 @@ def _calibration_takes(ctx: StageContext, params: CaptureParams, cameras, truth:
     except (TypeError, ValueError) as err:
         raise ConfigError(f"configs/rig.yaml: bad 'calibration' section ({err})") from err
     bars = [BarLight(b.id, b.center_world, b.axis_world, b.length_m, b.intensity) for b in rig.light_bars()]
-    take_params = CalibrationTakeParams(poses=params.calibration_poses, seed=params.noise_seed,
+    take_params = CalibrationTakeParams(poses=params.calibration_poses, seed=params.render.seed,
                                         volume_center_m=tuple(rig.head_center_m),
                                         mirror_roi=params.calibration_mirror_windows)
     board_cameras = {c.name: c for c in rig.cameras_at(params.calibration_image_scale)}

@@ -8,6 +8,8 @@ from typing import Any
 import cv2
 import numpy as np
 
+from scene.contact_sheet import tile_grid
+
 TILE_HEIGHT_PX = 96
 
 
@@ -28,7 +30,7 @@ def pick_frames(manifest: dict[str, Any], available: set[int], count: int) -> li
 
 def write_contact_sheet(path: Path, manifest: dict[str, Any], mattes: dict[str, dict[int, Path]], rows: int) -> None:
     """Write an 8-bit grid of the mattes in ``mattes[cam][index]`` (paths of 16-bit PNGs)."""
-    from scene.image_io import read_png16
+    from scene.image_io import read_png16, write_png8
 
     cams = [cam for cam in manifest["cameras"] if mattes.get(cam)]
     if not cams:
@@ -36,14 +38,12 @@ def write_contact_sheet(path: Path, manifest: dict[str, Any], mattes: dict[str, 
     available = set.intersection(*(set(mattes[cam]) for cam in cams))
     indices = pick_frames(manifest, available, rows)
     width = int(round(TILE_HEIGHT_PX * float(manifest["width"]) / float(manifest["height"])))
-    grid = np.zeros((max(len(indices), 1) * TILE_HEIGHT_PX, len(cams) * width), np.uint8)
-    for row, index in enumerate(indices):
-        for col, cam in enumerate(cams):
+    tiles = []
+    for index in indices:
+        for cam in cams:
             alpha = read_png16(mattes[cam][index])
             tile = cv2.resize(alpha, (width, TILE_HEIGHT_PX), interpolation=cv2.INTER_AREA)
-            grid[row * TILE_HEIGHT_PX:(row + 1) * TILE_HEIGHT_PX, col * width:(col + 1) * width] = \
-                np.round(np.clip(tile, 0, 1) * 255).astype(np.uint8)
+            tiles.append(np.round(np.clip(tile, 0, 1) * 255).astype(np.uint8))
     # Thin separators so the tiles of a black backdrop stay readable.
-    grid[:, ::width] = 64
-    grid[::TILE_HEIGHT_PX, :] = 64
-    cv2.imwrite(str(path), grid)
+    grid = tile_grid(tiles, len(cams), rows=max(len(indices), 1), cell=(TILE_HEIGHT_PX, width), separator=64)
+    write_png8(path, grid)

@@ -32,6 +32,7 @@ import time
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 import torch
@@ -39,7 +40,7 @@ from pydantic import Field
 
 from avatar.render import PointLights, RenderMethod, decode, render
 from pipeline.devices import DeviceChoice, resolve_device
-from pipeline.errors import ConfigError, InputError
+from pipeline.errors import InputError
 from pipeline.hashing import hash_path
 from pipeline.itemcache import stage_item_cache
 from pipeline.stage import Stage, StageContext, StageParams
@@ -63,12 +64,17 @@ class RelightParams(StageParams):
     envmaps: tuple[str, ...] = Field(DEFAULT_ENVMAPS, description="Lat-long EXR maps, paths relative to assets/envmaps or absolute.")
     envmap_frames: int = Field(4, ge=0, description="Frames per environment map sequence.")
     rotate_deg_per_frame: float = Field(30.0, description="Rotation of the map about +y per frame, degrees.")
-    light_method: str = Field("uniform", description="'uniform' (the paper's ~256 directions) or 'adaptive' (importance sampled).")
+    light_method: Literal["uniform", "adaptive"] = Field(
+        "uniform", description="'uniform' (the paper's ~256 directions) or 'adaptive' (importance sampled; see adaptive).")
     directions: int = Field(256, ge=1, description="Uniform directions before masking and dropping.")
     light_centroid: bool = Field(False, description="Uniform: place each light at its cell's energy centroid (a sun exactly where it is) instead of the paper's cell centre.")
     drop_fraction: float = Field(0.1, ge=0.0, lt=1.0, description="Fraction of the dimmest directions dropped (paper: 0.1).")
-    back_cone_deg: float = Field(45.0, ge=0.0, le=180.0, description="Half-angle of the masked cone around the back direction (-z).")
-    adaptive_tolerance: float = Field(0.1, gt=0.0, description="Adaptive selection: stop when the estimated error is below.")
+    back_mask: BackMask = Field(default_factory=BackMask,
+                                description="Light from behind the head (never seen in training): the dropped cone "
+                                "and the attenuation of the rest of the back hemisphere; see scene.envmap.BackMask.")
+    adaptive: AdaptiveParams = Field(default_factory=AdaptiveParams,
+                                     description="Adaptive light selection (light_method 'adaptive'): tolerance and "
+                                     "bounds; see scene.envmap.AdaptiveParams.")
     light_distance_m: float = Field(50.0, gt=1.0, description="Distance at which distant (envmap) lights are placed as point lights.")
     envmap_scale: float = Field(1.0, gt=0.0, description="Multiplier of envmap light intensities (exposure of the renders).")
     orbit_radius_m: float = Field(3.0, ge=0.0, description="Point light orbiting the head at this radius (0 = no orbit).")
@@ -211,8 +217,6 @@ def render_sequence(ctx: StageContext, source: FrameSource, name: str, frames: l
 
 def run(ctx: StageContext) -> None:
     params: RelightParams = ctx.params
-    if params.light_method not in ("uniform", "adaptive"):
-        raise ConfigError(f"relight.light_method: '{params.light_method}' is not one of 'uniform', 'adaptive'")
     device = resolve_device(params.device, "relight.device")
     model, meta, default_mesh, expressions = load_inputs(dict(ctx.inputs), params, device)
     steps = params.steps_per_ray or model.config.steps_per_ray
@@ -228,7 +232,7 @@ def run(ctx: StageContext) -> None:
                       image_scale=image_scale, light_batch=params.light_batch, method=method).numpy()
     view = seq.ViewSpec(params.width_px, params.height_px, params.distance_m, params.fov_deg,
                         tuple(float(v) for v in default_mesh.mean(0)))
-    mask = BackMask(cone_half_angle_deg=params.back_cone_deg)
+    mask = params.back_mask
     default = default_mesh[None]
     out.write_meshes(default, expressions if expressions is not None else np.zeros((0, *default_mesh.shape)))
     manifest: dict = {}
@@ -249,7 +253,7 @@ def run(ctx: StageContext) -> None:
             frames = seq.envmap_sequence(envmap, params.envmap_frames, params.rotate_deg_per_frame, view,
                                          method=params.light_method, directions=params.directions,
                                          drop_fraction=params.drop_fraction,
-                                         adaptive=AdaptiveParams(tolerance=params.adaptive_tolerance), mask=mask,
+                                         adaptive=params.adaptive, mask=mask,
                                          light_distance_m=params.light_distance_m, scale=params.envmap_scale,
                                          centroid=params.light_centroid)
         except EnvMapError as err:

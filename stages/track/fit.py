@@ -16,6 +16,7 @@ residuals are implausible (a wrong face, a head leaving the frustum) and refits.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
@@ -30,7 +31,9 @@ class FitParams(BaseModel):
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 
-    loss: str = Field("soft_l1", description="Robust loss of least_squares: 'soft_l1', 'cauchy', 'huber' or 'linear'.")
+    loss: Literal["soft_l1", "cauchy", "huber", "arctan", "linear"] = Field(
+        "soft_l1", description="Robust loss of scipy's least_squares: 'soft_l1', 'cauchy', 'huber', 'arctan' or "
+        "'linear' (plain least squares). Try 'cauchy' if outlier landmarks still pull the fit.")
     loss_scale_px: float = Field(1.5, gt=0, description="Residual (pixels) where the robust loss starts to flatten.")
     temporal_weights_px: float = Field(3.0, ge=0, description="Pixel-equivalent cost of a unit blendweight change between consecutive full-on frames.")
     temporal_rotation_px_per_deg: float = Field(0.5, ge=0, description="Pixel-equivalent cost of one degree of head rotation between consecutive full-on frames.")

@@ -21,7 +21,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from pipeline.itemcache import touch_entry
-from scene.colour import luminance, srgb_encode
+from scene.colour import luminance, srgb8
 
 NUM_FACEMESH_LANDMARKS = 468
 
@@ -91,7 +91,7 @@ def to_detector_image(linear_rgb: np.ndarray, params: DetectorParams) -> np.ndar
     level = float(np.percentile(lum, params.exposure_percentile))
     if level <= 1e-8:
         return None
-    return np.round(srgb_encode(rgb * (params.exposure_target / level)) * 255.0).astype(np.uint8)
+    return srgb8(rgb, params.exposure_target / level)
 
 
 class FaceMeshDetector:

@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
-from pathlib import Path
 from typing import Sequence
 
 import numpy as np
 
 from scene.camera import Camera
+from scene.contact_sheet import label_tile, resize_to_width, tile_grid
 
 
 def mesh_edges(faces: np.ndarray, vertex_mask: np.ndarray, max_edges: int) -> np.ndarray:
@@ -47,32 +47,12 @@ def draw_view(image_srgb: np.ndarray, camera: Camera, vertices_world: np.ndarray
         puv, pz = camera.project(fitted_world)
         for u, v in puv[pz > 0]:
             cv2.circle(canvas, (int(round(u * 4)), int(round(v * 4))), 6, (40, 40, 230), -1, lineType=cv2.LINE_AA, shift=2)
-    cv2.putText(canvas, label, (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (255, 255, 255), 1, cv2.LINE_AA)
+    label_tile(canvas, label, scale=0.4, origin=(4, 14))
     return canvas[..., ::-1]
 
 
 def contact_sheet(tiles: Sequence[np.ndarray], columns: int, tile_width: int = 320) -> np.ndarray:
     """Tiles (uint8 RGB, any size) resized to ``tile_width`` and laid out in a grid."""
-    import cv2
-
     if not tiles:
         return np.zeros((8, 8, 3), np.uint8)
-    resized = []
-    for tile in tiles:
-        h, w = tile.shape[:2]
-        resized.append(cv2.resize(tile, (tile_width, max(1, int(round(h * tile_width / w)))), interpolation=cv2.INTER_AREA))
-    tile_h = max(t.shape[0] for t in resized)
-    rows = (len(resized) + columns - 1) // columns
-    sheet = np.zeros((rows * tile_h, columns * tile_width, 3), np.uint8)
-    for k, tile in enumerate(resized):
-        r, c = divmod(k, columns)
-        sheet[r * tile_h: r * tile_h + tile.shape[0], c * tile_width: (c + 1) * tile_width] = tile
-    return sheet
-
-
-def write_png_rgb(path: Path, image_rgb: np.ndarray) -> None:
-    """Write a uint8 RGB image as PNG (raises ValueError naming the file on failure)."""
-    import cv2
-
-    if not cv2.imwrite(str(path), np.ascontiguousarray(image_rgb[..., ::-1])):
-        raise ValueError(f"{path}: could not write PNG")
+    return tile_grid([resize_to_width(tile, tile_width) for tile in tiles], columns)

@@ -38,6 +38,7 @@ from pydantic import Field
 from pipeline.errors import InputError
 from pipeline.stage import Stage, StageContext, StageParams
 from scene.camera import Camera
+from scene.image_io import write_png8
 from stages.calibrate.output import CalibrateOutput
 from stages.capture.output import CaptureOutput
 from stages.track import topology
@@ -45,7 +46,7 @@ from stages.track.interpolate import interpolate_track
 from stages.track.landmarks import (NUM_FACEMESH_LANDMARKS, DetectorParams, detect_files, landmark_subset,
                                     to_detector_image)
 from stages.track.output import TrackOutput
-from stages.track.overlay import contact_sheet, draw_view, mesh_edges, write_png_rgb
+from stages.track.overlay import contact_sheet, draw_view, mesh_edges
 from stages.track.rig import ActorRig, load_scan_rig
 from stages.track.tracker import KeyFrameObservations, Tracker, TrackerParams, TrackResult
 
@@ -207,7 +208,7 @@ def _write_overlay(ctx: StageContext, params: TrackParams, capture: CaptureOutpu
             label = f"{cam.name} frame {key_frames[k]['index']}"
             tiles.append(draw_view(image, cam, verts_world, edges, uv_all[k, c, ids], lm_world, label))
     sheet = contact_sheet(tiles, columns=len(cams), tile_width=min(320, cams[0].width))
-    write_png_rgb(TrackOutput(ctx.out).overlay_path, sheet)
+    write_png8(TrackOutput(ctx.out).overlay_path, sheet)
 
 
 def run(ctx: StageContext) -> None:

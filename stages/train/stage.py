@@ -57,7 +57,7 @@ from stages.train.evaluate import (SCALED_SPLITS, coverage_metrics, curve_png, e
 from stages.train.output import RUN_RECORDS, TrainOutput
 from stages.train.splits import SPLITS, Splits, make_splits, nearest_training_distance_mm
 from stages.train.side_by_side import train_models
-from stages.train.trainer import LossWeights, ModelTrainer, PruneSchedule, Renderer, TrainTensors
+from stages.train.trainer import LossWeights, ModelTrainer, Pruning, Renderer, TrainTensors
 
 
 class TrainParams(StageParams):
@@ -73,12 +73,8 @@ class TrainParams(StageParams):
         "expression modes of the training meshes) by avatar.capacity; 'fixed': the avatar section as given.")
     capacity_rule: CapacityRule = Field(default_factory=CapacityRule,
                                         description="Constants of the capacity rule (capacity 'auto').")
-    prune_at_fraction: float = Field(0.5, ge=0, le=1, description="Prune empty primitives after this fraction "
-                                     "of the iterations (0 = never prune).")
-    prune_window_fraction: float = Field(0.2, gt=0, le=1, description="Fraction of the iterations, just before "
-                                         "pruning, over which each primitive's opacity on training rays is recorded.")
-    prune_max_alpha: float = Field(0.01, ge=0, lt=1, description="A primitive that never added this much opacity "
-                                   "to any recorded training ray is pruned (dropped from the raymarch).")
+    pruning: Pruning = Field(default_factory=Pruning,
+                             description="When and how empty primitives are pruned; see stages.train.trainer.Pruning.")
     image_width_px: int = Field(64, ge=0, description="Training/evaluation image width in pixels (0 = the capture's).")
     max_frames: int = Field(0, ge=0, description="Use at most this many OLAT frames, evenly spread (0 = all).")
     resident_limit_gb: float = Field(8.0, ge=0, description="Training images and mattes larger than this (GB, "
@@ -99,11 +95,9 @@ class TrainParams(StageParams):
                                   "tiny preset it cost ours on alice, whose encoder and decoders still move together "
                                   "late in training and no longer match once averaged apart (docs/experiments.md, "
                                   "section 1).")
-    pho_weight: float = Field(1.0, ge=0, description="Weight of the photometric (MSE) loss.")
-    geo_weight: float = Field(0.1, ge=0, description="Weight of the guide-mesh loss (MSE, cm^2).")
-    vol_weight: float = Field(0.01, ge=0, description="Weight of MVP's primitive volume prior.")
-    kld_weight: float = Field(0.001, ge=0, description="Weight of the encoder's KL divergence.")
-    mat_weight: float = Field(0.1, ge=0, description="Weight of the matte loss (L1, matte vs accumulated opacity).")
+    loss_weights: LossWeights = Field(default_factory=LossWeights,
+                                      description="Weights of the loss terms (photometric, guide mesh, volume, KL, "
+                                      "matte); see stages.train.trainer.LossWeights.")
     held_out_bars: int = Field(3, ge=1, description="Interior bars held out for the novel-light split.")
     held_out_take: str = Field("", description="Take whose final segment is the novel performance ('' = the last take).")
     held_out_fraction: float = Field(0.5, gt=0, le=1, description="Final fraction of that take held out (1 = all of it).")
@@ -285,7 +279,7 @@ def train(ctx: StageContext, rank: int = 0, world_size: int = 1, device: torch.d
     ckpt_dir = ctx.cache_dir / key
     ckpt_dir.mkdir(parents=True, exist_ok=True)
     writer = _tensorboard_writer(ctx) if lead else None
-    weights = LossWeights(params.pho_weight, params.geo_weight, params.vol_weight, params.kld_weight, params.mat_weight)
+    weights = params.loss_weights
     kinds = ["ours"] + (["travatar"] if params.baseline else [])
     curves, renders, metrics = {}, {}, ctx.metrics
     renderers, trainers = {}, {}
@@ -309,7 +303,7 @@ def train(ctx: StageContext, rank: int = 0, world_size: int = 1, device: torch.d
             ckpt_path=ckpt_dir / f"{kind}.pt", checkpoint_every=params.checkpoint_every,
             spike_factor=params.spike_factor, log=ctx.log, curve_every=params.curve_every,
             curve_fn=curve_fn if lead else None, writer=writer, lr_decay_to=params.lr_decay_to, rank=rank,
-            world_size=world_size, prune=_prune_schedule(params, iterations),
+            world_size=world_size, prune=params.pruning.schedule(iterations),
             weight_average=params.weight_average)
         ctx.log.info("%s: %d parameters, %d primitives of %d^3 voxels", kind, count_parameters(model),
                      config.num_prims, config.voxels_per_side)
@@ -466,14 +460,6 @@ def _write_capacity(path: Path, params: TrainParams, capacity: Capacity, avatar:
                         "latent_dim": capacity.config.latent_dim},
         "used": avatar.model_dump(mode="json"),
     }, indent=1))
-
-
-def _prune_schedule(params: TrainParams, iterations: int) -> PruneSchedule | None:
-    if params.prune_at_fraction <= 0:
-        return None
-    at = max(1, int(round(params.prune_at_fraction * iterations)))
-    window = max(1, int(round(params.prune_window_fraction * iterations)))
-    return PruneSchedule(at_iteration=at, window=window, max_alpha=params.prune_max_alpha)
 
 
 def _prune_render_figures(renderer: Renderer, t: TrainTensors, pairs: list[tuple[int, int]]) -> dict[str, float]:

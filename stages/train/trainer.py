@@ -30,6 +30,8 @@ from typing import Callable
 
 import numpy as np
 import torch
+from pydantic import ConfigDict, Field
+from pydantic.dataclasses import dataclass as pydantic_dataclass
 import torch.nn.functional as F
 from torch import nn
 
@@ -44,15 +46,39 @@ class TrainingStopped(RuntimeError):
     """A trainer stopped early because a trainer beside it failed (``ModelTrainer.stop_event``)."""
 
 
-@dataclass(frozen=True)
+@pydantic_dataclass(frozen=True, config=ConfigDict(extra="forbid"))
 class LossWeights:
-    """The paper's loss weights."""
+    """The paper's loss weights (the one declaration: the train stage nests it as ``train.loss_weights``)."""
 
-    pho: float = 1.0
-    geo: float = 0.1
-    vol: float = 0.01
-    kld: float = 0.001
-    mat: float = 0.1
+    pho: float = Field(1.0, ge=0, description="Weight of the photometric (MSE) loss.")
+    geo: float = Field(0.1, ge=0, description="Weight of the guide-mesh loss (MSE, cm^2); raise it if the "
+                       "primitives drift off the tracked mesh.")
+    vol: float = Field(0.01, ge=0, description="Weight of MVP's primitive volume prior; raise it if primitives "
+                       "grow into large, blurry slabs.")
+    kld: float = Field(0.001, ge=0, description="Weight of the encoder's KL divergence.")
+    mat: float = Field(0.1, ge=0, description="Weight of the matte loss (L1, matte vs accumulated opacity); raise "
+                       "it if the avatar leaks opacity outside the head.")
+
+
+@pydantic_dataclass(frozen=True, config=ConfigDict(extra="forbid"))
+class Pruning:
+    """When and how empty primitives are pruned, as fractions of the run (the train stage nests it as
+    ``train.pruning``; ``schedule`` turns it into the trainer's ``PruneSchedule``)."""
+
+    at_fraction: float = Field(0.5, ge=0, le=1, description="Prune empty primitives after this fraction of the "
+                               "iterations (0 = never prune).")
+    window_fraction: float = Field(0.2, gt=0, le=1, description="Fraction of the iterations, just before pruning, "
+                                   "over which each primitive's opacity on training rays is recorded.")
+    max_alpha: float = Field(0.01, ge=0, lt=1, description="A primitive that never added this much opacity to any "
+                             "recorded training ray is pruned (dropped from the raymarch); raise it to prune more.")
+
+    def schedule(self, iterations: int) -> PruneSchedule | None:
+        """The schedule of a run of ``iterations`` (None when pruning is off)."""
+        if self.at_fraction <= 0:
+            return None
+        at = max(1, int(round(self.at_fraction * iterations)))
+        window = max(1, int(round(self.window_fraction * iterations)))
+        return PruneSchedule(at_iteration=at, window=window, max_alpha=self.max_alpha)
 
 
 @dataclass(frozen=True)

@@ -9,7 +9,7 @@ from scene.rig import default_rig
 from stages.capture.stage import STAGE as CAPTURE
 from stages.sequence.stage import STAGE as SEQUENCE
 
-SMALL = {"image_scale": 0.08, "texture_size": 64, "edge_samples": 2, "bar_samples": 1, "calibration_takes": False,
+SMALL = {"image_scale": 0.08, "texture_size": 64, "render": {"edge_samples": 2, "bar_samples": 1}, "calibration_takes": False,
          "takes": ["rom"], "identity_seed": 3, "repeat_frames": {"cam01": [2]}, "camera_drop_frames": {"cam00": [3]}}
 
 

@@ -12,7 +12,7 @@ from stages.capture.eval_stage import STAGE as CAPTURE_EVAL
 from stages.capture.stage import STAGE as CAPTURE
 from stages.sequence.stage import STAGE as SEQUENCE
 
-SMALL = {"image_scale": 0.08, "texture_size": 64, "edge_samples": 2, "bar_samples": 1, "calibration_takes": False}
+SMALL = {"image_scale": 0.08, "texture_size": 64, "render": {"edge_samples": 2, "bar_samples": 1}, "calibration_takes": False}
 
 
 def _rig(n_cameras: int):
