@@ -106,7 +106,7 @@ def _render(args: argparse.Namespace, log: logging.Logger) -> int:
         dolly_zoom_frames=args.frames if args.dolly_zoom else 0,
         expressions_csv=str(expr) if expr is not None and expr.is_file() else "",
         expressions_obj_dir=str(expr) if expr is not None and expr.is_dir() else "",
-        width_px=args.width, height_px=args.height, device=args.device, naive_timing_frames=0)
+        width_px=args.width, height_px=args.height, device=args.device, naive_timing_frames=0, bake_check=False)
     root = find_project_root()
     workspace = Workspace(workspace_root(root, args.workspaces), args.subject)
     inputs = {s: _stage_folder(workspace, s) for s in ("train", "track", "capture")}
