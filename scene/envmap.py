@@ -290,6 +290,20 @@ def fibonacci_sphere(n: int) -> np.ndarray:
     return np.stack([r * np.sin(phi), y, r * np.cos(phi)], axis=-1)
 
 
+def uniform_solid_angles_sr(n: int) -> np.ndarray:
+    """Solid angle [n] (steradians, summing to 4 pi) of each ``fibonacci_sphere(n)`` direction's Voronoi cell.
+
+    Exact spherical cells (``scipy.spatial.SphericalVoronoi``); a map's lights integrate the
+    pixels whose centres fall in them (``select_uniform``), which approaches these areas as
+    the map's resolution grows.
+    """
+    from scipy.spatial import SphericalVoronoi
+
+    if n < 4:
+        return np.full(n, 4.0 * math.pi / n)
+    return np.asarray(SphericalVoronoi(fibonacci_sphere(n)).calculate_areas(), float)
+
+
 @functools.lru_cache(maxsize=16)
 def _voronoi_cells(height: int, width: int, n: int) -> np.ndarray:
     """Index [H * W] of the nearest of ``fibonacci_sphere(n)`` for every pixel (its Voronoi cell)."""
@@ -610,6 +624,6 @@ def synthetic_sky(height: int = 64, sun_direction: np.ndarray | None = None, sun
 __all__ = [
     "AdaptiveParams", "BackMask", "DirectionalLights", "EnvMap", "EnvMapError", "EnvMapWarning", "RotatingProjection",
     "direction_to_pixel", "fibonacci_sphere", "kept_directions", "pixel_directions", "pixel_solid_angles_sr", "probe_kernel",
-    "read_envmap", "select_adaptive", "select_lights", "select_uniform", "synthetic_sky", "weighted_radiance",
+    "read_envmap", "select_adaptive", "select_lights", "select_uniform", "synthetic_sky", "uniform_solid_angles_sr", "weighted_radiance",
     "write_envmap",
 ]

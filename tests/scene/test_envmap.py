@@ -12,7 +12,8 @@ import pytest
 from scene.envmap import (AdaptiveParams, BackMask, EnvMap, EnvMapError, EnvMapWarning, RotatingProjection,
                           direction_to_pixel,
                           fibonacci_sphere, pixel_directions, pixel_solid_angles_sr, read_envmap, select_adaptive,
-                          select_uniform, synthetic_sky, weighted_radiance, write_envmap)
+                          select_uniform, synthetic_sky, uniform_solid_angles_sr, weighted_radiance,
+                          write_envmap, _voronoi_cells)
 
 ROOT = Path(__file__).resolve().parents[2]
 ORIENTATION = ROOT / "assets/envmaps/openexr-images/OrientationLatLong.exr"
@@ -287,3 +288,12 @@ def _projection(envmap, count):
     if key not in _PROJECTIONS:
         _PROJECTIONS[key] = RotatingProjection(envmap, count, 0.1, BackMask())
     return _PROJECTIONS[key]
+
+
+def test_uniform_solid_angles_are_the_cells_the_map_pixels_fall_in():
+    solid = uniform_solid_angles_sr(64)
+    assert solid.shape == (64,) and abs(solid.sum() - 4 * math.pi) < 1e-9
+    # The pixels nearest each direction add up to its cell, up to the cells' ragged pixel edges.
+    cells = _voronoi_cells(256, 512, 64)
+    pixels = np.bincount(cells, np.repeat(pixel_solid_angles_sr(256), 512), minlength=64)
+    np.testing.assert_allclose(pixels, solid, rtol=0.02)
