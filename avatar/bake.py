@@ -97,20 +97,29 @@ class DirectionImages:
     alpha: torch.Tensor
 
 
+# Above this many ray samples (rays x steps) the transport's weights would not fit in memory
+# comfortably (~20 bytes per weight, a few hundred weights per ray): render each direction instead.
+TRANSPORT_MAX_SAMPLES = 1 << 26
+
+
 @torch.no_grad()
 def direction_images(model: RelightableMVP, geometry: DecodedGeometry, camera, directions: np.ndarray, *,
                      distance_m: float = 50.0, centre=(0.0, 0.0, 0.0), steps: int | None = None,
-                     light_batch: int = 16, method: Literal["transport", "raymarch"] = "transport",
+                     light_batch: int = 16, method: Literal["auto", "transport", "raymarch"] = "auto",
                      kernel: RaymarchKernel = "auto") -> DirectionImages:
     """The render of ``geometry`` from ``camera`` under a unit light from each direction [D, 3].
 
     ``method="transport"``: every light batch through one colour transport (fast);
-    ``"raymarch"``: ``avatar.render.render`` per direction (the slow, obvious reference).
+    ``"raymarch"``: ``avatar.render.render`` per direction (the slow, obvious reference);
+    ``"auto"``: the transport up to ``TRANSPORT_MAX_SAMPLES`` ray samples (e.g. 96 x 128 x 32),
+    one raymarch per direction above (the paper's 1024 x 768 x 128, on a GPU).
     """
     rays = _rays(model, camera)
     steps = int(steps or model.config.steps_per_ray)
     directions = np.asarray(directions, float).reshape(-1, 3)
     lights = direction_lights(directions, distance_m, centre)
+    if method == "auto":
+        method = "transport" if rays.height * rays.width * steps <= TRANSPORT_MAX_SAMPLES else "raymarch"
     if method == "raymarch":
         images = [render(model, geometry, rays, lights[i:i + 1], steps=steps, kernel=kernel) for i in range(len(lights))]
         return DirectionImages(directions, torch.stack([im.rgb for im in images]), images[0].alpha)
@@ -373,5 +382,5 @@ def psnr_db(pred: np.ndarray, reference: np.ndarray, alpha: np.ndarray) -> float
     return float(10.0 * np.log10(1.0 / max(mse, 1e-30)))
 
 
-__all__ = ["BAKE_FORMAT", "BakeKind", "DirectionImages", "ImageBake", "VoxelBake", "bake_images", "bake_voxels",
+__all__ = ["BAKE_FORMAT", "TRANSPORT_MAX_SAMPLES", "BakeKind", "DirectionImages", "ImageBake", "VoxelBake", "bake_images", "bake_voxels",
            "direction_images", "direction_lights", "psnr_db"]

@@ -168,3 +168,18 @@ def test_direction_lights_sit_far_along_each_direction():
     lights = direction_lights(np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0]]), 50.0, CENTRE)
     np.testing.assert_allclose(lights.positions, CENTRE + np.array([[0, 0, 50.0], [50.0, 0, 0]]))
     assert lights.rgb is None
+
+
+def test_auto_renders_each_direction_where_the_transport_would_be_too_big(head, monkeypatch):
+    import avatar.bake as bake
+
+    model, geometry = head
+    dirs = fibonacci_sphere(4)
+    small = direction_images(model, geometry, _camera(), dirs, centre=CENTRE)  # transport
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("the transport was built above TRANSPORT_MAX_SAMPLES")
+    monkeypatch.setattr(bake, "TRANSPORT_MAX_SAMPLES", 100)
+    monkeypatch.setattr(bake, "colour_transport", refuse)
+    big = direction_images(model, geometry, _camera(), dirs, centre=CENTRE)
+    torch.testing.assert_close(big.rgb, small.rgb, rtol=0.0, atol=2e-5 * float(small.rgb.max()))
