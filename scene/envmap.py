@@ -28,6 +28,10 @@ Radiometry: a map holds radiance ``L`` (linear RGB). A set of distant lights cho
 (``DirectionalLights``) carries, per direction, the integral of ``L`` times the pixel solid
 angle over the directions it stands for (``irradiance_rgb``, the irradiance the light gives
 a surface facing it), so the lights' sum is the map's integral (times any attenuation).
+
+Rotation: ``select_uniform`` of a map turned about +y integrates the whole map again;
+``RotatingProjection`` precomputes every whole-column shift of one map once and then gives
+the same lights for any rotation in microseconds (the light-transfer bake's projection).
 """
 
 from __future__ import annotations
@@ -290,6 +294,20 @@ def fibonacci_sphere(n: int) -> np.ndarray:
     return np.stack([r * np.sin(phi), y, r * np.cos(phi)], axis=-1)
 
 
+def uniform_solid_angles_sr(n: int) -> np.ndarray:
+    """Solid angle [n] (steradians, summing to 4 pi) of each ``fibonacci_sphere(n)`` direction's Voronoi cell.
+
+    Exact spherical cells (``scipy.spatial.SphericalVoronoi``); a map's lights integrate the
+    pixels whose centres fall in them (``select_uniform``), which approaches these areas as
+    the map's resolution grows.
+    """
+    from scipy.spatial import SphericalVoronoi
+
+    if n < 4:
+        return np.full(n, 4.0 * math.pi / n)
+    return np.asarray(SphericalVoronoi(fibonacci_sphere(n)).calculate_areas(), float)
+
+
 @functools.lru_cache(maxsize=16)
 def _voronoi_cells(height: int, width: int, n: int) -> np.ndarray:
     """Index [H * W] of the nearest of ``fibonacci_sphere(n)`` for every pixel (its Voronoi cell)."""
@@ -324,19 +342,90 @@ def select_uniform(envmap: EnvMap, count: int = 256, drop_fraction: float = 0.1,
     cells = _voronoi_cells(envmap.height, envmap.width, count)
     irradiance = np.stack([np.bincount(cells, energy[:, c], minlength=count) for c in range(3)], -1)
     directions = fibonacci_sphere(count)
-    lum = luminance(irradiance).astype(np.float64)
     if centroid:
         pixel_lum = luminance(energy).astype(np.float64)  # [H*W]
         dirs = pixel_directions(envmap.height, envmap.width).reshape(-1, 3)
         mean = np.stack([np.bincount(cells, pixel_lum * dirs[:, c], minlength=count) for c in range(3)], -1)
         norm = np.linalg.norm(mean, axis=1, keepdims=True)
         directions = np.where(norm > 1e-30, mean / np.maximum(norm, 1e-30), directions)
+    keep = kept_directions(irradiance, drop_fraction, envmap.source)
+    return DirectionalLights(directions[keep], irradiance[keep], "uniform")
+
+
+def kept_directions(irradiance: np.ndarray, drop_fraction: float, source: str = "envmap") -> np.ndarray:
+    """Indices (ascending) of the uniform directions ``select_uniform`` keeps: lit ones less the dimmest few.
+
+    ``irradiance`` [count, 3] per direction; directions with no light are removed, then the
+    ``drop_fraction`` dimmest of the rest (by luminance, ties in index order) are dropped.
+    """
+    lum = luminance(irradiance).astype(np.float64)
     alive = np.flatnonzero(lum > 0)
     if alive.size == 0:
-        raise EnvMapError(f"environment map {envmap.source}: no light left (all black, or all behind the head)")
+        raise EnvMapError(f"environment map {source}: no light left (all black, or all behind the head)")
     n_drop = int(math.floor(drop_fraction * len(alive)))
-    keep = np.sort(alive[np.argsort(lum[alive], kind="stable")[n_drop:]])
-    return DirectionalLights(directions[keep], irradiance[keep], "uniform")
+    return np.sort(alive[np.argsort(lum[alive], kind="stable")[n_drop:]])
+
+
+class RotatingProjection:
+    """The paper's uniform lights of every rotation of one map about +y, a few microseconds each.
+
+    ``select_uniform(envmap.rotated_about_y(a), count, drop_fraction, mask)`` integrates the
+    whole map per rotation (tens of ms at 512 x 1024). Rotation about +y is a shift of the
+    map's columns under fixed Voronoi cells and a fixed back mask (both belong to the head),
+    so this precomputes, once per map, every cell's integral of the map shifted by every whole
+    number of columns: per row, the cross-correlation of the cell's solid angle times mask
+    with the map's row, by FFT (``table`` [count, W, 3]). A rotation by a fractional number of
+    columns mixes two whole shifts, as ``rotated_about_y`` does; the dead and dimmest
+    directions are then dropped as ``select_uniform`` drops them (``kept_directions``).
+
+    ``lights(a)`` equals ``select_uniform(envmap.rotated_about_y(a), ...)`` to float rounding
+    (the FFT's, ~1e-12 of the map's total; a direction lit by less than that counts as dark).
+    Only the paper's cell-centre directions (``centroid=False``): centroids move with the map.
+    """
+
+    def __init__(self, envmap: EnvMap, count: int = 256, drop_fraction: float = 0.1,
+                 mask: BackMask = BackMask()) -> None:
+        h, w = envmap.height, envmap.width
+        self.source, self.count, self.drop_fraction, self.width = envmap.source, int(count), drop_fraction, w
+        self.directions = fibonacci_sphere(count)  # [count, 3]
+        cells = _voronoi_cells(h, w, count).reshape(h, w)
+        weight = mask.weights(pixel_directions(h, w)) * pixel_solid_angles_sr(h)[:, None]  # [H, W]
+        spectrum = np.fft.rfft(envmap.radiance.astype(np.float64), axis=1)  # [H, F, 3]
+        acc = np.zeros((count, spectrum.shape[1], 3), np.complex128)  # [count, F, 3]
+        columns = np.arange(w)
+        for i in range(h):
+            row_cells, inverse = np.unique(cells[i], return_inverse=True)
+            rows = np.zeros((len(row_cells), w))
+            rows[inverse, columns] = weight[i]
+            # sum_j m[j] L[j + t] for every t: conj(FFT(m)) * FFT(L), summed over the rows.
+            acc[row_cells] += np.conj(np.fft.rfft(rows, axis=1))[:, :, None] * spectrum[i][None]
+        table = np.fft.irfft(acc, n=w, axis=1)  # [count, W, 3]: cell integral at each whole shift
+        total = float(np.abs(table).max(initial=0.0))
+        self.table = np.where(table > 1e-12 * total, table, 0.0)  # FFT round-off is no light
+        lit = np.bincount(cells.reshape(-1), weight.reshape(-1), minlength=count) > 0
+        self.table[~lit] = 0.0  # cells wholly in the masked cone are dark at every rotation
+
+    def irradiance(self, angle_rad: float) -> np.ndarray:
+        """Irradiance [count, 3] of every uniform direction under the map turned by ``angle_rad`` (before dropping)."""
+        shift_px = angle_rad / (2.0 * math.pi) * self.width
+        whole = math.floor(shift_px)
+        frac = shift_px - whole
+        a, b = self.table[:, whole % self.width], self.table[:, (whole + 1) % self.width]
+        return (1.0 - frac) * a + frac * b
+
+    def weights(self, angle_rad: float) -> np.ndarray:
+        """Irradiance [count, 3] of the lights ``select_uniform`` keeps, 0 for the directions it drops."""
+        irradiance = self.irradiance(angle_rad)
+        out = np.zeros_like(irradiance)
+        keep = kept_directions(irradiance, self.drop_fraction, self.source)
+        out[keep] = irradiance[keep]
+        return out
+
+    def lights(self, angle_rad: float) -> DirectionalLights:
+        """``select_uniform(envmap.rotated_about_y(angle_rad), count, drop_fraction, mask)``, fast."""
+        irradiance = self.irradiance(angle_rad)
+        keep = kept_directions(irradiance, self.drop_fraction, self.source)
+        return DirectionalLights(self.directions[keep], irradiance[keep], "uniform")
 
 
 # ---- adaptive selection ------------------------------------------------------------------------
@@ -537,8 +626,8 @@ def synthetic_sky(height: int = 64, sun_direction: np.ndarray | None = None, sun
 
 
 __all__ = [
-    "AdaptiveParams", "BackMask", "DirectionalLights", "EnvMap", "EnvMapError", "EnvMapWarning",
-    "direction_to_pixel", "fibonacci_sphere", "pixel_directions", "pixel_solid_angles_sr", "probe_kernel",
-    "read_envmap", "select_adaptive", "select_lights", "select_uniform", "synthetic_sky", "weighted_radiance",
+    "AdaptiveParams", "BackMask", "DirectionalLights", "EnvMap", "EnvMapError", "EnvMapWarning", "RotatingProjection",
+    "direction_to_pixel", "fibonacci_sphere", "kept_directions", "pixel_directions", "pixel_solid_angles_sr", "probe_kernel",
+    "read_envmap", "select_adaptive", "select_lights", "select_uniform", "synthetic_sky", "uniform_solid_angles_sr", "weighted_radiance",
     "write_envmap",
 ]

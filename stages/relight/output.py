@@ -23,6 +23,7 @@ import numpy as np
 from pipeline.stage_output import StageOutput
 
 _RENDERS = "renders.json"
+_PATHS = "paths.json"
 _MESHES = "meshes.npz"
 _FRAMES = "frames"
 _PREVIEWS = "previews"
@@ -45,6 +46,12 @@ class RelightOutput(StageOutput):
 
     def write_renders(self, renders: dict[str, list[dict[str, Any]]]) -> None:
         self.write_json(renders, _RENDERS, indent=1)
+
+    def write_paths(self, paths: dict[str, dict[str, Any]]) -> None:
+        """``paths.json``: sequence name -> the render path it took (bake or voxel-space sum), why,
+        and its frame count. The report shows any stage's ``paths.json`` (a report convention,
+        like ``tradeoffs/``), so the name is not one of this stage's private contract names."""
+        self.write_json(paths, _PATHS, indent=1)
 
     @property
     def meshes_path(self) -> Path:

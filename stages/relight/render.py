@@ -60,7 +60,8 @@ def frame_key(item: FrameItem) -> str:
 _WORKER: dict[str, object] = {}  # this process's model and last decoded geometry
 
 
-def _model(item: FrameItem):
+def worker_model(item):
+    """This worker's copy of ``item``'s model (``model_dir``, ``model_digest``, ``device``), loaded once."""
     from avatar.io import load_trained
 
     key = (item.model_digest, item.device)
@@ -70,13 +71,8 @@ def _model(item: FrameItem):
     return _WORKER["model"]
 
 
-def render_frame(item: FrameItem) -> dict:
-    """Render one frame with the voxel-space sum: ``{"rgb": [H, W, 3], "alpha": [H, W] float32, "seconds"}``.
-
-    ``seconds`` is the render alone (geometry decoding and model loading excluded, as the
-    stage's per-frame timings always were).
-    """
-    model = _model(item)
+def worker_geometry(model, item):
+    """The decoded geometry of ``item``'s driving mesh (``meshes_path``, ``mesh_array``, ``mesh_index``), kept for the next item."""
     geometry_key = (item.mesh_digest, item.meshes_path, item.mesh_array, item.mesh_index)
     if _WORKER.get("geometry_key") != geometry_key:
         if _WORKER.get("meshes_key") != (item.meshes_path, item.mesh_array):
@@ -84,8 +80,19 @@ def render_frame(item: FrameItem) -> dict:
                 _WORKER.update(meshes_key=(item.meshes_path, item.mesh_array), meshes=meshes[item.mesh_array])
         vertices = np.asarray(_WORKER["meshes"][item.mesh_index], np.float32)  # type: ignore[index]
         _WORKER.update(geometry_key=geometry_key, geometry=decode(model, vertices))
+    return _WORKER["geometry"]
+
+
+def render_frame(item: FrameItem) -> dict:
+    """Render one frame with the voxel-space sum: ``{"rgb": [H, W, 3], "alpha": [H, W] float32, "seconds"}``.
+
+    ``seconds`` is the render alone (geometry decoding and model loading excluded, as the
+    stage's per-frame timings always were).
+    """
+    model = worker_model(item)
+    geometry = worker_geometry(model, item)
     start = time.perf_counter()
-    rgb, alpha = render(model, _WORKER["geometry"], item.camera, PointLights(item.light_pos, item.light_rgb),
+    rgb, alpha = render(model, geometry, item.camera, PointLights(item.light_pos, item.light_rgb),
                         steps=item.steps, image_scale=item.image_scale, light_batch=item.light_batch).numpy()
     if torch.device(item.device).type == "cuda":
         torch.cuda.synchronize()

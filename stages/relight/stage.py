@@ -9,20 +9,35 @@ Output (every sequence in its own folder)::
     <sequence>/frames/<i:06d>.exr     linear RGBA (float16), head at the origin, black backdrop
     <sequence>/previews/<i:06d>.png   sRGB preview (exposure fixed from the first frame)
     <sequence>/<sequence>.mp4         the previews as a video
-    renders.json                      per sequence and frame: camera, lights, mesh index, map
+    renders.json                      per sequence and frame: camera, lights, mesh index, map, path
+    paths.json                        per sequence: the path its frames took ("bake" or "voxel_sum") and why
     meshes.npz                        the driving meshes used ("default": [1, V, 3], "expressions")
-    metrics.json                      envmap_seconds_per_frame, naive_envmap_seconds_per_frame, ...
+    metrics.json                      envmap_seconds_per_frame, naive_envmap_seconds_per_frame, bake_*, ...
 
-Environment maps render with the voxel-space light sum (one raymarch per frame); the naive
-render-each-light path is timed on ``naive_timing_frames`` frames and checked to agree; on those
-frames the fast path is timed too, in the same process one after the other, and that is
-``envmap_seconds_per_frame`` (the workers' own timings, which overlap, are
-``envmap_worker_seconds_per_frame``).
+Environment maps render with the voxel-space light sum (decode every light, one raymarch per
+frame) or from a light-transfer bake of the view and expression (``avatar.bake``: a weighted
+sum of basis images per frame, no network). ``envmap_path`` "auto" bakes a (view, expression)
+once ``bake_min_frames`` envmap frames share it (one bake serves every map and rotation; it
+costs about as much as a few sum frames), which needs the paper's uniform cell-centre lights;
+point lights, turntables, dolly zooms and new views or expressions stay on the network.
+``paths.json`` and each frame's ``path`` in ``renders.json`` say which path was taken.
+
+Timings measured in this process, one after the other (the workers' own timings overlap each
+other and any other job): the naive render-each-light path against the voxel-space sum on
+``naive_timing_frames`` frames (checked to agree), and, with ``bake_check``, one bake
+(``bake_seconds``), then its frames (``bake_frame_seconds``: projecting the turned map onto the
+baked directions plus the weighted sum) against the voxel-space sum of the same frames on
+``bake_check_envmaps`` at ``bake_check_rotations_deg`` (``bake_psnr_vs_sum_db``, the mean;
+``bake_speedup_vs_sum``). ``envmap_seconds_per_frame`` is the mean of this process's
+voxel-space-sum timings (the workers', ``envmap_worker_seconds_per_frame``, without any).
 
 Frames fan out through ``ctx.executor`` (GPU items on CUDA) and are cached per frame in the
 stage's ``cache_dir`` (key: checkpoint digest, driving mesh, camera, lights, settings), so a
 rerun renders only frames it has not rendered before (metrics ``frames_reused``,
 ``frames_computed``); seconds per frame are those measured when each frame was rendered.
+Bakes are kept in the same cache (``stages.relight.bake.bake_key``: checkpoint digest, driving
+mesh, camera, baked directions, rank and settings, code version; ``bakes_reused``,
+``bakes_computed``); frames from a bake are not cached (a weighted sum is cheaper than a read).
 """
 
 from __future__ import annotations
@@ -38,15 +53,18 @@ import numpy as np
 import torch
 from pydantic import Field
 
+from avatar.bake import ImageBake, bake_images, psnr_db
 from avatar.render import PointLights, RenderMethod, decode, render
 from pipeline.devices import DeviceChoice, resolve_device
-from pipeline.errors import InputError
+from pipeline.errors import ConfigError, InputError
 from pipeline.hashing import hash_path
 from pipeline.itemcache import stage_item_cache
 from pipeline.stage import Stage, StageContext, StageParams
-from scene.envmap import AdaptiveParams, BackMask, EnvMapError, EnvMapWarning, read_envmap
+from scene.envmap import (AdaptiveParams, BackMask, EnvMapError, EnvMapWarning, RotatingProjection, fibonacci_sphere,
+                          read_envmap)
 from stages.capture.output import CaptureOutput
 from stages.relight import sequences as seq
+from stages.relight.bake import BAKE_CODE, BakeItem, bake_item, bake_key, choose_paths, render_from_bake, view_key
 from stages.relight.output import RelightOutput
 from stages.relight.outputs import SequenceWriter
 from stages.relight.render import FrameItem, frame_key, render_frame
@@ -94,6 +112,12 @@ class RelightParams(StageParams):
     light_batch: int = Field(16, ge=1, description="Lights decoded per batch in the voxel-space sum.")
     steps_per_ray: int = Field(0, ge=0, description="Raymarch steps per ray (0 = the model's own setting).")
     naive_timing_frames: int = Field(1, ge=0, description="Envmap frames (the first ones, over all maps) timed in this process with the fast and the naive path (timing and agreement check); 0 = report the workers' timings.")
+    envmap_path: Literal["auto", "bake", "sum"] = Field("auto", description="How envmap sequences render: 'auto' (from a light-transfer bake of their view and expression where one bake serves at least bake_min_frames envmap frames, else the voxel-space sum), 'bake' (always bake; needs uniform cell-centre lights) or 'sum' (never).")
+    bake_rank: int = Field(32, ge=0, description="Images in the bake's basis (0 = one per direction, exact). The error falls about 8 dB per doubling; error and time per rank are in docs/experiments.md (bench_relight).")
+    bake_min_frames: int = Field(4, ge=1, description="'auto': bake a view and expression once this many envmap frames (over all maps and rotations) share it; a bake costs about as much as four voxel-space-sum frames on tiny.")
+    bake_check: bool = Field(True, description="Time one bake, its frames and the voxel-space sum of the same frames side by side in this process, and compare them (metrics bake_*), on bake_check_envmaps at bake_check_rotations_deg. Off for quick renders.")
+    bake_check_envmaps: tuple[str, ...] = Field((), description="Maps the bake is checked on, as envmaps; empty = the envmaps rendered (the shipped defaults unless changed).")
+    bake_check_rotations_deg: tuple[float, ...] = Field((0.0, 90.0, 200.0), description="Rotations about +y at which each checked map is compared, degrees.")
     device: DeviceChoice = Field("auto", description="'auto' (CUDA if present), 'cpu' or 'cuda'.")
 
 
@@ -104,9 +128,29 @@ def resolve_envmap(name: str) -> Path:
 
 
 def _external(params: RelightParams) -> list[Path]:
-    files = [resolve_envmap(m) for m in params.envmaps]
+    files = [resolve_envmap(m) for m in dict.fromkeys(params.envmaps + _check_maps(params))]
     files += [Path(p) for p in (params.expressions_csv, params.expressions_obj_dir) if p]
     return files
+
+
+def _check_maps(params: RelightParams) -> tuple[str, ...]:
+    """The maps the bake is checked on (``bake_check_envmaps``, or the envmaps rendered); none when the check is off."""
+    if not params.bake_check:
+        return ()
+    return tuple(params.bake_check_envmaps or params.envmaps)
+
+
+def _read_map(name: str, log):
+    """An envmap by its param name; repairs are logged, a bad file is an InputError naming it."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", EnvMapWarning)
+        try:
+            envmap = read_envmap(resolve_envmap(name))
+        except EnvMapError as err:
+            raise InputError(f"relight.envmaps: {err}") from err
+    for w in caught:
+        log.warning("%s", w.message)
+    return envmap
 
 
 def load_inputs(ctx_inputs: dict[str, Path], params: RelightParams, device: str):
@@ -155,14 +199,11 @@ class FrameSource:
 
     def items(self, frames: list[seq.FrameSpec], meshes: np.ndarray, mesh_array: str) -> list[FrameItem]:
         """One picklable item per frame; the driving mesh is named by its array, row and content digest."""
-        from pipeline.hashing import hash_bytes
-
         digests: dict[int, str] = {}
         items = []
         for spec in frames:
             if spec.mesh_index not in digests:
-                row = np.ascontiguousarray(meshes[spec.mesh_index], np.float32)
-                digests[spec.mesh_index] = hash_bytes(row.tobytes())
+                digests[spec.mesh_index] = _mesh_digest(meshes, spec.mesh_index)
             items.append(FrameItem(
                 model_dir=str(self.model_dir), model_digest=self.model_digest, meshes_path=str(self.meshes_path),
                 mesh_array=mesh_array, mesh_index=spec.mesh_index, mesh_digest=digests[spec.mesh_index],
@@ -170,6 +211,22 @@ class FrameSource:
                 steps=self.steps, light_batch=self.light_batch, image_scale=self.image_scale,
                 device=self.device))
         return items
+
+    def bake(self, spec: seq.FrameSpec, meshes: np.ndarray, mesh_array: str, params: "RelightParams",
+             centre_head) -> BakeItem:
+        """The bake item of a frame's view and expression (the uniform directions the envmap frames use)."""
+        return BakeItem(
+            model_dir=str(self.model_dir), model_digest=self.model_digest, meshes_path=str(self.meshes_path),
+            mesh_array=mesh_array, mesh_index=spec.mesh_index, mesh_digest=_mesh_digest(meshes, spec.mesh_index),
+            camera=spec.camera, directions=params.directions, distance_m=params.light_distance_m,
+            centre_head=tuple(float(v) for v in centre_head), rank=params.bake_rank, steps=self.steps,
+            light_batch=self.light_batch, device=self.device)
+
+
+def _mesh_digest(meshes: np.ndarray, index: int) -> str:
+    from pipeline.hashing import hash_bytes
+
+    return hash_bytes(np.ascontiguousarray(meshes[index], np.float32).tobytes())
 
 
 def _timed(render, geometry, spec: seq.FrameSpec) -> float:
@@ -197,11 +254,9 @@ def render_sequence(ctx: StageContext, source: FrameSource, name: str, frames: l
     cache = stage_item_cache(ctx)
 
     def write(i: int, result: dict) -> None:
-        spec = frames[i]
         seconds.append(float(result["seconds"]))
         writer.write(i, np.asarray(result["rgb"], np.float32), np.asarray(result["alpha"], np.float32))
-        records.append({"index": i, "camera": spec.camera.to_dict(), "light_pos": spec.light_pos.tolist(),
-                        "light_rgb": spec.light_rgb.tolist(), "mesh_index": spec.mesh_index, **spec.info})
+        records.append(_record(i, frames[i], "voxel_sum"))
 
     try:
         cache.map(ctx.executor, render_frame, source.items(frames, meshes, mesh_array), frame_key,
@@ -215,8 +270,102 @@ def render_sequence(ctx: StageContext, source: FrameSource, name: str, frames: l
     return seconds
 
 
+def _record(index: int, spec: seq.FrameSpec, path: str) -> dict:
+    """A frame's entry in ``renders.json``: what it shows and which path rendered it."""
+    return {"index": index, "camera": spec.camera.to_dict(), "light_pos": spec.light_pos.tolist(),
+            "light_rgb": spec.light_rgb.tolist(), "mesh_index": spec.mesh_index, "path": path, **spec.info}
+
+
+def fetch_bakes(ctx: StageContext, items: list[BakeItem]) -> list[ImageBake]:
+    """The bakes of ``items``: from the stage's per-item cache, the missing ones baked through the executor."""
+    cache = stage_item_cache(ctx, code=BAKE_CODE)
+    results = cache.map(ctx.executor, bake_item, items, bake_key, desc="light-transfer bakes",
+                        gpu=items[0].device.startswith("cuda") if items else False)
+    cache.report(ctx, "light-transfer bakes")
+    ctx.metrics["bakes_reused"] = ctx.metrics.get("bakes_reused", 0) + cache.hits
+    ctx.metrics["bakes_computed"] = ctx.metrics.get("bakes_computed", 0) + cache.misses
+    return [ImageBake.from_arrays(r) for r in results]
+
+
+def render_bake_sequence(ctx: StageContext, baked: ImageBake, name: str, frames: list[seq.FrameSpec],
+                         image_scale: float, manifest: dict) -> list[float]:
+    """Write one envmap sequence from its view's bake (every frame a weighted sum of the basis); seconds per frame."""
+    out = RelightOutput(ctx.out)
+    writer = SequenceWriter(out, name, ctx.params.fps, ctx.log)
+    seconds, records = [], []
+    manifest[name] = records
+    try:
+        for i, spec in enumerate(frames):
+            try:
+                result = render_from_bake(baked, spec, image_scale)
+            except ValueError as err:  # a light off the baked directions: a bug in choosing the path
+                raise InputError(f"relight: sequence {name} frame {i}: {err}") from err
+            seconds.append(result["seconds"])
+            writer.write(i, result["rgb"], result["alpha"])
+            records.append(_record(i, spec, "bake"))
+    finally:
+        writer.finish()
+        out.write_renders(manifest)
+    return seconds
+
+
+def _bakeable(params: RelightParams) -> str | None:
+    """None when envmap frames use the bake's fixed directions; else why they cannot."""
+    if params.light_method != "uniform":
+        return (f"light_method '{params.light_method}' picks directions per map and rotation; a bake holds fixed "
+                "ones (use 'uniform')")
+    if params.light_centroid:
+        return "light_centroid moves each light to its cell's centroid of the map; a bake holds the cell centres"
+    return None
+
+
+def bake_check(ctx: StageContext, model, geometry, baked: ImageBake, camera, params: RelightParams,
+               mask: BackMask, centre_head, image_scale: float, steps: int) -> dict[str, list[float]]:
+    """The bake against the voxel-space sum on the same frames, timed one after the other in this process.
+
+    For every map of ``_check_maps`` at every ``bake_check_rotations_deg``: the bake frame
+    (projection of the turned map onto the baked directions, then the weighted sum) and the
+    voxel-space sum of the same lights (the select_uniform lights of the turned map), their
+    seconds and the bake's PSNR against the sum.
+    """
+    found: dict[str, list[float]] = {"bake_s": [], "sum_s": [], "psnr": [], "setup_s": []}
+    warm = False
+    for name in _check_maps(params):
+        envmap = _read_map(name, ctx.log)
+        start = time.perf_counter()
+        projection = RotatingProjection(envmap, params.directions, params.drop_fraction, mask)
+        found["setup_s"].append(time.perf_counter() - start)
+        for deg in params.bake_check_rotations_deg:
+            angle = math.radians(deg)
+            start = time.perf_counter()
+            rgb_bake, _ = baked.frame(params.envmap_scale * projection.weights(angle), image_scale)
+            found["bake_s"].append(time.perf_counter() - start)
+            lights = projection.lights(angle)
+            points = PointLights(lights.positions_world(params.light_distance_m, np.asarray(centre_head)),
+                                 params.envmap_scale * lights.irradiance_rgb)
+
+            def sum_frame():
+                return render(model, geometry, camera, points, steps=steps, image_scale=image_scale,
+                              light_batch=params.light_batch).numpy()
+            if not warm:
+                sum_frame()  # one-off costs (kernel load, allocator) out of the timing
+                warm = True
+            start = time.perf_counter()
+            rgb_sum, alpha = sum_frame()
+            if torch.cuda.is_available():
+                torch.cuda.synchronize()
+            found["sum_s"].append(time.perf_counter() - start)
+            found["psnr"].append(psnr_db(rgb_bake, rgb_sum, alpha))
+            ctx.log.info("bake check %s at %.0f deg: %.1f dB against the voxel-space sum; %.2f ms against %.0f ms",
+                         envmap.name, deg, found["psnr"][-1], 1e3 * found["bake_s"][-1], 1e3 * found["sum_s"][-1])
+    return found
+
+
 def run(ctx: StageContext) -> None:
     params: RelightParams = ctx.params
+    bakeable = _bakeable(params)
+    if params.envmap_path == "bake" and bakeable is not None:
+        raise ConfigError(f"relight.envmap_path 'bake': {bakeable}; or set envmap_path to 'auto' or 'sum'")
     device = resolve_device(params.device, "relight.device")
     model, meta, default_mesh, expressions = load_inputs(dict(ctx.inputs), params, device)
     steps = params.steps_per_ray or model.config.steps_per_ray
@@ -237,18 +386,11 @@ def run(ctx: StageContext) -> None:
     out.write_meshes(default, expressions if expressions is not None else np.zeros((0, *default_mesh.shape)))
     manifest: dict = {}
     metrics = ctx.metrics
-    envmap_seconds, directions, naive_seconds, fast_seconds, max_diff = [], [], [], [], 0.0
 
+    # Every sequence first (what each frame shows), so that a path can be chosen for each.
+    sequences: dict[str, tuple[list[seq.FrameSpec], np.ndarray, str]] = {}
     for map_name in params.envmaps:
-        path = resolve_envmap(map_name)
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always", EnvMapWarning)
-            try:
-                envmap = read_envmap(path)
-            except EnvMapError as err:
-                raise InputError(f"relight.envmaps: {err}") from err
-        for w in caught:
-            ctx.log.warning("%s", w.message)
+        envmap = _read_map(map_name, ctx.log)
         try:
             frames = seq.envmap_sequence(envmap, params.envmap_frames, params.rotate_deg_per_frame, view,
                                          method=params.light_method, directions=params.directions,
@@ -258,9 +400,86 @@ def run(ctx: StageContext) -> None:
                                          centroid=params.light_centroid)
         except EnvMapError as err:
             raise InputError(f"relight.envmaps: {err}") from err
-        envmap_seconds += render_sequence(ctx, source, f"envmap_{envmap.name}", frames, default, "default", manifest)
+        sequences[f"envmap_{envmap.name}"] = (frames, default, "default")
+    key_pos, key_rgb = seq.key_light(view)
+    if params.orbit_radius_m > 0 and params.orbit_frames > 0:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always", seq.LightRangeWarning)
+            frames = seq.point_light_sequence(
+                seq.orbit_positions(params.orbit_radius_m, params.orbit_frames, 0.0, view.target_head), view,
+                falloff_reference_m=params.falloff_reference_m, mask=mask, what="orbit")
+        for w in caught:
+            ctx.log.warning("%s", w.message)
+        sequences["point_orbit"] = (frames, default, "default")
+    if params.point_lights:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always", seq.LightRangeWarning)
+            frames = seq.point_light_sequence(np.asarray(params.point_lights, float), view,
+                                              falloff_reference_m=params.falloff_reference_m, mask=mask)
+        for w in caught:
+            ctx.log.warning("%s", w.message)
+        sequences["point_lights"] = (frames, default, "default")
+    if params.camera_eyes:
+        sequences["views"] = (seq.views_sequence(np.asarray(params.camera_eyes, float), view, key_pos, key_rgb),
+                              default, "default")
+    if params.turntable_frames:
+        sequences["turntable"] = (seq.turntable_sequence(params.turntable_frames, view, key_pos, key_rgb),
+                                  default, "default")
+    if params.dolly_zoom_frames:
+        sequences["dolly_zoom"] = (seq.dolly_zoom_sequence(params.dolly_zoom_frames, view, key_pos, key_rgb),
+                                   default, "default")
+    if expressions is not None:
+        sequences["expressions"] = (seq.expression_sequence(expressions, view, key_pos, key_rgb), expressions,
+                                    "expressions")
+    paths = choose_paths({name: frames for name, (frames, _, _) in sequences.items()}, params.envmap_path,
+                         params.bake_min_frames, bakeable)
+    out.write_paths({name: {"path": c.path, "reason": c.reason, "frames": len(sequences[name][0])}
+                     for name, c in paths.items()})
+
+    geometry = decode(model, default_mesh)
+    front = view.camera(view.front_eye())
+    check: dict[str, list[float]] = {}
+    bake_seconds = None
+    if params.bake_check and _check_maps(params) and bakeable is None:
+        # One bake of the default view and expression, in this process and timed, then its frames
+        # against the voxel-space sum's; kept in the cache, where the envmap sequences find it.
+        item = source.bake(seq.FrameSpec(front, key_pos, key_rgb, 0), default, "default", params, view.target_head)
+        start = time.perf_counter()
+        baked = bake_images(model, geometry, front, fibonacci_sphere(params.directions), rank=params.bake_rank,
+                            distance_m=params.light_distance_m, centre=view.target_head, steps=steps,
+                            light_batch=params.light_batch)
+        bake_seconds = time.perf_counter() - start
+        cache = stage_item_cache(ctx, code=BAKE_CODE)
+        entry = cache.path(bake_item, bake_key(item))
+        if not entry.is_file():
+            cache.store(entry, baked.to_arrays())
+        check = bake_check(ctx, model, geometry, baked, front, params, mask, view.target_head, image_scale, steps)
+
+    # The bakes the sequences need, one per view and expression (from the cache where made before).
+    bakes: dict[tuple, ImageBake] = {}
+    wanted: dict[tuple, BakeItem] = {}
+    for name, (frames, meshes, mesh_array) in sequences.items():
+        if paths[name].path == "bake":
+            for spec in frames:
+                wanted.setdefault(view_key(spec), source.bake(spec, meshes, mesh_array, params, view.target_head))
+    if wanted:
+        bakes = dict(zip(wanted, fetch_bakes(ctx, list(wanted.values()))))
+
+    manifest: dict = {}
+    envmap_seconds, bake_frame_seconds, directions = [], [], []
+    naive_seconds, fast_seconds, max_diff = [], [], 0.0
+    for name, (frames, meshes, mesh_array) in sequences.items():
+        if paths[name].path == "bake":
+            bake_frame_seconds += render_bake_sequence(ctx, bakes[view_key(frames[0])], name, frames, image_scale,
+                                                       manifest)
+        else:
+            seconds = render_sequence(ctx, source, name, frames, meshes, mesh_array, manifest)
+            if name.startswith("envmap_"):
+                envmap_seconds += seconds
+        ctx.log.info("%s: %d frames by %s (%s)", name, len(frames), paths[name].path, paths[name].reason)
+        if not name.startswith("envmap_"):
+            continue
         directions += [f.info["directions"] for f in frames]
-        geometry = decode(model, default_mesh)
         for spec in frames[:max(0, params.naive_timing_frames - len(naive_seconds))]:
             # Both paths timed here, one after the other in this one process: the workers'
             # own timings overlap each other (and any other job), so they measure contention.
@@ -271,50 +490,45 @@ def run(ctx: StageContext) -> None:
             naive_seconds.append(time.perf_counter() - start)
             max_diff = max(max_diff, float(np.abs(fast_rgb - naive_rgb).max()))
 
-    key_pos, key_rgb = seq.key_light(view)
-    if params.orbit_radius_m > 0 and params.orbit_frames > 0:
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always", seq.LightRangeWarning)
-            frames = seq.point_light_sequence(
-                seq.orbit_positions(params.orbit_radius_m, params.orbit_frames, 0.0, view.target_head), view,
-                falloff_reference_m=params.falloff_reference_m, mask=mask, what="orbit")
-        for w in caught:
-            ctx.log.warning("%s", w.message)
-        render_sequence(ctx, source, "point_orbit", frames, default, "default", manifest)
-    if params.point_lights:
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always", seq.LightRangeWarning)
-            frames = seq.point_light_sequence(np.asarray(params.point_lights, float), view,
-                                              falloff_reference_m=params.falloff_reference_m, mask=mask)
-        for w in caught:
-            ctx.log.warning("%s", w.message)
-        render_sequence(ctx, source, "point_lights", frames, default, "default", manifest)
-    if params.camera_eyes:
-        render_sequence(ctx, source, "views", seq.views_sequence(np.asarray(params.camera_eyes, float), view, key_pos,
-                                                                key_rgb), default, "default", manifest)
-    if params.turntable_frames:
-        render_sequence(ctx, source, "turntable", seq.turntable_sequence(params.turntable_frames, view, key_pos,
-                                                                        key_rgb), default, "default", manifest)
-    if params.dolly_zoom_frames:
-        render_sequence(ctx, source, "dolly_zoom", seq.dolly_zoom_sequence(params.dolly_zoom_frames, view, key_pos,
-                                                                          key_rgb), default, "default", manifest)
-    if expressions is not None:
-        render_sequence(ctx, source, "expressions", seq.expression_sequence(expressions, view, key_pos, key_rgb),
-                        expressions, "expressions", manifest)
-
+    # Seconds per envmap frame of the voxel-space sum: this process's timings (comparable with the
+    # naive path's and the bake's), else the workers'.
+    sum_seconds = fast_seconds + check.get("sum_s", [])
+    if sum_seconds or envmap_seconds:
+        metrics["envmap_seconds_per_frame"] = float(np.mean(sum_seconds or envmap_seconds))
     if envmap_seconds:
-        # Single-process timing when there is one (comparable with the naive path's), else the workers'.
-        metrics["envmap_seconds_per_frame"] = float(np.mean(fast_seconds or envmap_seconds))
         metrics["envmap_worker_seconds_per_frame"] = float(np.mean(envmap_seconds))
+    if directions:
         metrics["envmap_directions"] = float(np.mean(directions))
-        metrics["envmap_frames"] = len(envmap_seconds)
+        metrics["envmap_frames"] = len(directions)
     if naive_seconds:
         metrics["naive_envmap_seconds_per_frame"] = float(np.mean(naive_seconds))
         metrics["envmap_fast_naive_max_abs_diff"] = max_diff
+    metrics["envmap_frames_from_bake"] = len(bake_frame_seconds)
+    metrics["envmap_frames_from_sum"] = len(envmap_seconds)
+    metrics["sequences_from_bake"] = sum(c.path == "bake" for c in paths.values())
+    metrics["sequences_from_network"] = sum(c.path != "bake" for c in paths.values())
+    if bake_frame_seconds:
+        metrics["bake_sequence_frame_seconds"] = float(np.mean(bake_frame_seconds))
+    if bake_seconds is not None:
+        metrics["bake_seconds"] = bake_seconds
+        metrics["bake_rank"] = params.bake_rank or params.directions
+        metrics["bake_directions"] = params.directions
+        metrics["bake_mb"] = baked.nbytes / 1e6
+    if check.get("psnr"):
+        metrics["bake_frame_seconds"] = float(np.mean(check["bake_s"]))
+        metrics["bake_check_sum_seconds_per_frame"] = float(np.mean(check["sum_s"]))
+        metrics["bake_speedup_vs_sum"] = float(np.mean(check["sum_s"]) / max(np.mean(check["bake_s"]), 1e-9))
+        metrics["bake_psnr_vs_sum_db"] = float(np.mean(check["psnr"]))
+        metrics["bake_psnr_vs_sum_min_db"] = float(np.min(check["psnr"]))
+        metrics["bake_check_frames"] = len(check["psnr"])
+        metrics["bake_projection_setup_seconds"] = float(np.mean(check["setup_s"]))
+        metrics["bake_break_even_frames"] = float(
+            bake_seconds / max(np.mean(check["sum_s"]) - np.mean(check["bake_s"]), 1e-9))
     metrics["frames_rendered"] = sum(len(v) for v in manifest.values())
-    ctx.log.info("relight: %d frames; envmap %.3f s/frame (naive %.3f), %.0f directions",
-                 metrics["frames_rendered"], metrics.get("envmap_seconds_per_frame", math.nan),
-                 metrics.get("naive_envmap_seconds_per_frame", math.nan), metrics.get("envmap_directions", math.nan))
+    ctx.log.info("relight: %d frames (%d from bakes); envmap %.3f s/frame (naive %.3f, bake %.4f), %.0f directions",
+                 metrics["frames_rendered"], len(bake_frame_seconds), metrics.get("envmap_seconds_per_frame", math.nan),
+                 metrics.get("naive_envmap_seconds_per_frame", math.nan), metrics.get("bake_frame_seconds", math.nan),
+                 metrics.get("envmap_directions", math.nan))
 
 
 STAGE = Stage(

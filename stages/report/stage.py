@@ -1,7 +1,7 @@
 """Stage ``report``: one self-contained HTML page a supervisor opens in a browser.
 
-It reads only what the other stages wrote (their ``metrics.json``, PNGs, and optional
-``tradeoffs/*.json`` speed-against-accuracy series) and never the ground truth itself:
+It reads only what the other stages wrote (their ``metrics.json``, PNGs, optional
+``tradeoffs/*.json`` speed-against-accuracy series and relight's ``paths.json``) and never the ground truth itself:
 accuracy figures come from the evaluation stages' metrics.
 
 Output::
@@ -151,11 +151,31 @@ def _stage_section(ctx: StageContext, stage: str, evaluator: str | None, metrics
         section.table(table)
     else:
         section.paragraph("This stage reported no metrics.", "note")
+    paths = _render_paths_table(ctx.input(stage), stage)
+    if paths is not None:
+        section.paragraph("How each sequence was rendered: 'bake' from the light-transfer bake of its view and "
+                          "expression (a weighted sum of basis images), 'voxel_sum' through the network every frame.")
+        section.table(paths)
     folders = [ctx.input(stage)] + ([ctx.input(evaluator)] if evaluator else [])
     pngs = [p for folder in folders for p in sorted(folder.glob("*.png"))][:limit]
     for png in pngs:
         section.figure(png, f"{png.parent.name if png.parent.name != stage else stage}: {png.stem.replace('_', ' ')}")
     return section
+
+
+def _render_paths_table(folder: Path, stage: str) -> Table | None:
+    """The stage's ``paths.json`` (relight: sequence -> path, frames, reason) as a table; None if absent or unreadable."""
+    try:
+        paths = json.loads((folder / "paths.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    if not isinstance(paths, dict):
+        return None
+    table = Table(["sequence", "path", "frames", "why"], table_id=f"paths-{stage}")
+    for name, entry in paths.items():
+        if isinstance(entry, dict):
+            table.add([name, str(entry.get("path", "?")), str(entry.get("frames", "")), str(entry.get("reason", ""))])
+    return table
 
 
 def _tradeoff_charts(ctx: StageContext, charts: Path) -> list[tuple[Path, str]]:

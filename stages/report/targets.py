@@ -58,4 +58,6 @@ TARGETS: tuple[Target, ...] = (
     Target("train", "ours_novel_both_psnr", ">=", "travatar_novel_both_psnr", "both held out: ours vs TRAvatar*"),
     Target("relight", "envmap_seconds_per_frame", "<=", "naive_envmap_seconds_per_frame",
            "voxel-space envmap sum vs naive per-light raymarch"),
+    Target("relight", "bake_speedup_vs_sum", ">=", 50.0, "envmap frame from the bake vs the voxel-space sum (x)"),
+    Target("relight", "bake_psnr_vs_sum_db", ">=", 40.0, "bake frame vs voxel-space sum, same frame (dB)"),
 )

@@ -9,9 +9,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from scene.envmap import (AdaptiveParams, BackMask, EnvMap, EnvMapError, EnvMapWarning, direction_to_pixel,
+from scene.envmap import (AdaptiveParams, BackMask, EnvMap, EnvMapError, EnvMapWarning, RotatingProjection,
+                          direction_to_pixel,
                           fibonacci_sphere, pixel_directions, pixel_solid_angles_sr, read_envmap, select_adaptive,
-                          select_uniform, synthetic_sky, weighted_radiance, write_envmap)
+                          select_uniform, synthetic_sky, uniform_solid_angles_sr, weighted_radiance,
+                          write_envmap, _voronoi_cells)
 
 ROOT = Path(__file__).resolve().parents[2]
 ORIENTATION = ROOT / "assets/envmaps/openexr-images/OrientationLatLong.exr"
@@ -257,3 +259,41 @@ def test_black_map_is_a_clear_error():
         select_uniform(black, 32)
     with pytest.raises(EnvMapError, match="black.exr.*no light"):
         select_adaptive(black)
+
+
+@pytest.mark.parametrize("angle_deg", [0.0, 17.3, -95.0, 360.0 + 40.0])
+def test_rotating_projection_gives_select_uniforms_lights_of_the_rotated_map(angle_deg):
+    """Every rotation's lights from the precomputed table equal select_uniform's of the rotated map
+    (masked back cone, dropped dimmest, fractional column shifts), on a sunny map and a shipped one."""
+    sunny = synthetic_sky(48, np.array([0.6, 0.4, -0.5]), 0.6, sun_radius_deg=3.0)
+    shipped = read_envmap(BLENDER / "sunrise.exr")
+    for envmap, count in ((sunny, 64), (shipped, 256)):
+        projection = _projection(envmap, count)
+        angle = math.radians(angle_deg)
+        fast = projection.lights(angle)
+        reference = select_uniform(envmap.rotated_about_y(angle), count, 0.1, BackMask())
+        np.testing.assert_array_equal(fast.directions_world, reference.directions_world)
+        np.testing.assert_allclose(fast.irradiance_rgb, reference.irradiance_rgb, rtol=1e-6,
+                                   atol=1e-9 * float(reference.irradiance_rgb.max()))
+        weights = projection.weights(angle)  # every direction, the dropped ones at 0
+        assert weights.shape == (count, 3) and int((weights.sum(1) > 0).sum()) == len(reference)
+        np.testing.assert_allclose(weights.sum(0), reference.total_rgb(), rtol=1e-6)
+
+
+_PROJECTIONS: dict = {}
+
+
+def _projection(envmap, count):
+    key = (envmap.source, count)
+    if key not in _PROJECTIONS:
+        _PROJECTIONS[key] = RotatingProjection(envmap, count, 0.1, BackMask())
+    return _PROJECTIONS[key]
+
+
+def test_uniform_solid_angles_are_the_cells_the_map_pixels_fall_in():
+    solid = uniform_solid_angles_sr(64)
+    assert solid.shape == (64,) and abs(solid.sum() - 4 * math.pi) < 1e-9
+    # The pixels nearest each direction add up to its cell, up to the cells' ragged pixel edges.
+    cells = _voronoi_cells(256, 512, 64)
+    pixels = np.bincount(cells, np.repeat(pixel_solid_angles_sr(256), 512), minlength=64)
+    np.testing.assert_allclose(pixels, solid, rtol=0.02)

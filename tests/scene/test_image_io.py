@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 
 from scene.colour import srgb_decode, srgb_encode
-from scene.image_io import read_exr, read_png, read_png16, write_exr, write_png16, write_png_srgb
+from scene.image_io import (read_exr, read_png, read_png16, write_exr, write_multipart_exr, write_png16,
+                            write_png_srgb)
 
 
 @pytest.mark.parametrize("half,tol", [(True, 2e-3), (False, 0.0)])
@@ -59,3 +60,26 @@ def test_srgb_png_and_transfer_functions(tmp_path):
     back = read_png(tmp_path / "p.png", linear=True)
     assert back.shape == (5, 4, 3)
     np.testing.assert_allclose(back, lin, atol=0.01)  # 8-bit quantisation in sRGB
+
+
+def test_multipart_exr_keeps_each_part_its_name_channels_and_attributes(tmp_path):
+    import OpenEXR
+
+    rng = np.random.default_rng(0)
+    images = [rng.uniform(0, 4, (5, 7, 4)).astype(np.float32), rng.uniform(0, 4, (5, 7, 3)).astype(np.float32)]
+    parts = [("dir000", images[0], {"olatIndex": 0, "olatDirection": np.array([0, 0, 1], np.float32),
+                                    "olatSolidAngleSr": 0.25}),
+             ("dir001", images[1], {"olatIndex": 1})]
+    write_multipart_exr(tmp_path / "m.exr", parts, half=False)
+    with OpenEXR.File(str(tmp_path / "m.exr"), separate_channels=True) as exr:
+        assert [p.name() for p in exr.parts] == ["dir000", "dir001"]
+        assert set(exr.parts[0].channels) == {"dir000.R", "dir000.G", "dir000.B", "dir000.A"}
+        np.testing.assert_array_equal(exr.parts[0].channels["dir000.A"].pixels, images[0][..., 3])
+        np.testing.assert_array_equal(exr.parts[1].channels["dir001.G"].pixels, images[1][..., 1])
+        assert exr.parts[0].header["olatSolidAngleSr"] == 0.25 and exr.parts[1].header["olatIndex"] == 1
+        np.testing.assert_array_equal(exr.parts[0].header["olatDirection"], [0, 0, 1])
+    write_multipart_exr(tmp_path / "h.exr", parts[:1])  # half by default
+    with OpenEXR.File(str(tmp_path / "h.exr"), separate_channels=True) as exr:
+        assert exr.parts[0].channels["dir000.R"].pixels.dtype == np.float16
+    with pytest.raises(ValueError, match="dir9"):
+        write_multipart_exr(tmp_path / "bad.exr", [("dir9", np.zeros((2, 2)), {})])

@@ -40,7 +40,7 @@ def test_stage_writes_every_sequence_and_metrics(inputs, tmp_path):
 
 def test_without_timing_frames_the_workers_timing_is_reported(inputs, tmp_path):
     params = {**FAST, "envmap_frames": 1, "orbit_frames": 0, "turntable_frames": 0, "dolly_zoom_frames": 0,
-              "naive_timing_frames": 0}
+              "naive_timing_frames": 0, "bake_check": False}
     metrics = json.loads((run_stage_for_test(STAGE, tmp_path, inputs, params) / "metrics.json").read_text())
     assert "naive_envmap_seconds_per_frame" not in metrics
     assert metrics["envmap_seconds_per_frame"] == metrics["envmap_worker_seconds_per_frame"] > 0
