@@ -5,7 +5,9 @@ anchors on the guide mesh), ``model`` (encoder, geometry / appearance / opacity 
 ``render`` (the public render API: mesh + camera + lights -> image), ``raymarch`` (fast
 paths + slow reference; on the CPU the fused C++ kernel of ``raymarch_fused``, built on
 first use), ``travatar`` (the TRAvatar* baseline), ``io`` (save / load), ``metrics`` and
-``lpips`` (evaluation).
+``lpips`` (evaluation), ``transport`` (a raymarch's voxel-to-pixel weights as a sparse matrix) and
+``bake`` (the light-transfer bake: any distant lighting of one view and expression as a
+weighted sum of basis images).
 
 Usage (stable API; all positions in head space, metres; images linear RGB)::
 

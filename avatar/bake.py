@@ -12,7 +12,7 @@ for any rotation of a map in microseconds).
 
 1. decode the RGB voxels of every direction (the network, ``light_batch`` lights at a time:
    the decode the voxel-space sum does on every frame, done once);
-2. render all of them through the view's colour transport (``avatar.raymarch.colour_transport``:
+2. render all of them through the view's colour transport (``avatar.transport.colour_transport``:
    the raymarch's voxel-to-pixel weights, recorded once; each batch of directions is then one
    sparse product instead of a raymarch per direction);
 3. compress the D images to rank R: with ``A`` [D, H*W*3] (one image per row), the top R
@@ -56,7 +56,8 @@ import numpy as np
 import torch
 
 from avatar.model import DecodedGeometry, RelightableMVP
-from avatar.raymarch import RaymarchKernel, colour_transport, raymarch
+from avatar.raymarch import RaymarchKernel, raymarch
+from avatar.transport import colour_transport
 from avatar.render import PointLights, Rays, decode_lights, render
 
 BakeKind = Literal["image", "voxel"]

@@ -14,8 +14,7 @@ sample is spent in empty space). Every primitive containing a sample adds its de
 share of its opacity that still fits below 1 (MVP's early termination: past saturation
 a sample contributes nothing and gets no gradient).
 
-Three implementations give the same images (and ``colour_transport`` records the weights of
-one, see below):
+Three implementations give the same images:
 - ``raymarch_reference``: obvious and slow; loops over primitives (``grid_sample`` on every
   sample) and over steps, stopping when every ray is opaque. For tests.
 - ``raymarch(kernel="fused")``: the fused C++ CPU kernel (``avatar.raymarch_fused``), one
@@ -34,16 +33,10 @@ one, see below):
   one matrix per box with the half extents folded in, and the every-ray-against-every-box
   slab test is two batched matmuls and a single reciprocal (faster than per-pair einsums and
   divisions; docs/experiments.md, section 4).
-
-``colour_transport``: with opacity fixed, a raymarch is linear in the voxel colours. It
-records the weight of every voxel in every pixel (a sparse matrix), so any number of colour
-grids over the same geometry and rays render as one sparse product each (the light-transfer
-bake, ``avatar.bake``); its test is that the product equals the raymarch of each grid.
 """
 
 from __future__ import annotations
 
-import warnings
 from dataclasses import dataclass
 from typing import Literal, get_args
 
@@ -188,10 +181,11 @@ def resolve_kernel(kernel: RaymarchKernel, device: torch.device, dtype: torch.dt
 _CORNERS = torch.tensor([[dx, dy, dz] for dz in (0, 1) for dy in (0, 1) for dx in (0, 1)])  # [8, 3] (x, y, z)
 
 
-def _trilinear_corners(base: torch.Tensor, local: torch.Tensor, m: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Rows [Q, 8] of the 8 voxels around local coordinates [Q, 3] and their trilinear weights [Q, 8].
+def _trilinear_gather(table: torch.Tensor, base: torch.Tensor, local: torch.Tensor, m: int) -> torch.Tensor:
+    """Trilinear lookup of voxel rows [Q, C] in ``table`` [*, C] at local coordinates [Q, 3].
 
     ``base`` [Q] is the row of each primitive's voxel (0, 0, 0); voxels are stored z-major.
+    One gather of all 8 corners (its backward is a single scatter-add).
     """
     g = ((local + 1.0) * 0.5 * m - 0.5).clamp(0.0, m - 1.0)  # [Q, 3] voxel coordinates (x, y, z)
     i0 = g.detach().floor().clamp(max=m - 2).long()  # [Q, 3]
@@ -203,16 +197,6 @@ def _trilinear_corners(base: torch.Tensor, local: torch.Tensor, m: int) -> tuple
     wy = torch.stack([1.0 - f[:, 1], f[:, 1]], -1)
     wz = torch.stack([1.0 - f[:, 2], f[:, 2]], -1)
     w = (wz[:, :, None, None] * wy[:, None, :, None] * wx[:, None, None, :]).reshape(-1, 8)  # [Q, 8] (z, y, x)
-    return rows, w
-
-
-def _trilinear_gather(table: torch.Tensor, base: torch.Tensor, local: torch.Tensor, m: int) -> torch.Tensor:
-    """Trilinear lookup of voxel rows [Q, C] in ``table`` [*, C] at local coordinates [Q, 3].
-
-    ``base`` [Q] is the row of each primitive's voxel (0, 0, 0); voxels are stored z-major.
-    One gather of all 8 corners (its backward is a single scatter-add).
-    """
-    rows, w = _trilinear_corners(base, local, m)  # [Q, 8], [Q, 8]
     values = table[rows.reshape(-1)].view(rows.shape[0], 8, -1)  # [Q, 8, C]
     return (values * w[..., None]).sum(1)  # [Q, C]
 
@@ -319,131 +303,6 @@ def _raymarch_fused(prims: Primitives, rays_o: torch.Tensor, rays_d: torch.Tenso
         prim_alpha = torch.zeros(b * p, dtype=added.dtype).scatter_reduce(
             0, flat_p.reshape(-1), added.reshape(-1), reduce="amax", include_self=True).view(b, p)
     return RenderResult(rgb=rgb.view(b, r, 3), alpha=alpha.view(b, r), prim_alpha=prim_alpha)
-
-
-@dataclass
-class ColourTransport:
-    """A raymarch as a linear map from voxel colours to pixel colours (one geometry, one set of rays).
-
-    With opacity fixed, every pixel's colour is a fixed weighted sum of voxel colours (the
-    sample's share of opacity times its density times the trilinear weight), the same for
-    each colour channel. ``matrix`` holds those weights, so ``apply`` renders any number of
-    colour grids over the same geometry at the cost of one sparse product each, with no box
-    test or compositing: the light-transfer bake (``avatar.bake``) renders all its
-    directions that way.
-
-    Attributes:
-        matrix: [R, P*M^3] sparse CSR (float): row = ray, column = voxel of the (unpruned
-            rows of the) primitives, z-major within each primitive, as ``Primitives.rgb``.
-        alpha: [R] the rays' accumulated opacity (as ``raymarch``'s).
-    """
-
-    matrix: torch.Tensor
-    alpha: torch.Tensor
-
-    def apply(self, rgb: torch.Tensor) -> torch.Tensor:
-        """Pixel colours [R, C] of voxel colours [P, M, M, M, C] (any C: e.g. 3 channels times k lights)."""
-        channels = int(rgb.shape[-1])
-        return self.matrix @ rgb.reshape(-1, channels).to(self.matrix.dtype)
-
-    @property
-    def nnz(self) -> int:
-        """Stored weights (the transport's size: about 12 bytes each)."""
-        return int(self.matrix.values().numel())
-
-
-def _ray_candidates(prims: Primitives, rays_o: torch.Tensor, rays_d: torch.Tensor, steps: int, fused: bool
-                    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Batch 1: candidate boxes [R, K] (-1 = empty slot), their entry and exit distances [R, K], samples [R, S], step [R].
-
-    ``fused``: the fused kernel's bounding-sphere culling (as ``raymarch(kernel="fused")``
-    samples), else the tensor path's slab test (as ``kernel="torch"``).
-    """
-    if fused:
-        local_from_head, centre_local = _to_local(prims)
-        cand, near, far, t_min, t_max = fused_module(required=True).candidates(
-            rays_o.contiguous(), rays_d.contiguous(), local_from_head.contiguous(), centre_local.contiguous(),
-            prims.centre.contiguous(), prims.half_extent.norm(dim=-1).contiguous())  # [R, K] x3, [R] x2
-        dt = (t_max - t_min) / steps  # [R]
-        t = t_min[:, None] + (torch.arange(steps, dtype=dt.dtype) + 0.5) * dt[:, None]  # [R, S]
-        return cand, near, far, t, dt
-    hit, t_near, t_far = box_intervals(prims, rays_o, rays_d)  # [1, R, P]
-    t, dt = ray_samples(hit, t_near, t_far, steps)  # [1, R, S], [1, R]
-    k = max(1, int(hit.sum(-1).max()))
-    cand_hit, cand = torch.topk(hit.to(torch.uint8), k, dim=-1)  # [1, R, K]
-    near, far = torch.gather(t_near, -1, cand)[0], torch.gather(t_far, -1, cand)[0]
-    return torch.where(cand_hit[0].bool(), cand[0], -1), near, far, t[0], dt[0]
-
-
-@torch.no_grad()
-def colour_transport(prims: Primitives, rays_o: torch.Tensor, rays_d: torch.Tensor, steps: int,
-                     max_pairs: int = 1 << 23, kernel: RaymarchKernel = "auto") -> ColourTransport:
-    """The weights by which ``raymarch(prims, rays_o, rays_d, steps, kernel=kernel)`` mixes voxel colours, batch 1.
-
-    ``prims`` [1, P, ...] (its ``rgb`` is not read), rays [1, R, 3]. The raymarch's sampling
-    and compositing, with each (sample, box, voxel) weight recorded instead of summed, so
-    ``colour_transport(...).apply(prims.rgb[0])`` equals the raymarch's colour to float
-    rounding. ``kernel`` picks whose ray-box culling to use (``"auto"``: the fused kernel's
-    on the CPU where it builds, as ``raymarch``); the weights themselves are tensor ops.
-    Rays go in chunks so that no intermediate exceeds about ``max_pairs`` entries.
-    """
-    b, r, _ = rays_o.shape
-    if b != 1 or prims.centre.shape[0] != 1:
-        raise ValueError(f"colour_transport: one geometry and one set of rays (batch 1), got rays "
-                         f"{tuple(rays_o.shape)} and {prims.centre.shape[0]} geometries")
-    fused = resolve_kernel(kernel, prims.density.device, prims.density.dtype) == "fused"
-    p = prims.centre.shape[1]
-    m3 = prims.voxels_per_side ** 3
-    density = prims.density.reshape(-1)  # [P*M^3]
-    local_from_head, centre_local = _to_local(prims)  # [1, P, 3, 3], [1, P, 3]
-    chunk = max(1, min(r, max_pairs // max(1, p)))
-    crow, ccol, cval, alphas = [], [], [], []
-    for start in range(0, r, chunk):
-        o, d = rays_o[:, start:start + chunk], rays_d[:, start:start + chunk]  # [1, Rc, 3]
-        rc = o.shape[1]
-        cand, near, far, t, dt = _ray_candidates(prims, o, d, steps, fused)  # [Rc, K] x3, [Rc, S], [Rc]
-        k = cand.shape[1]
-        inside = ((cand >= 0)[:, None, :] & (t[..., None] >= near[:, None, :])
-                  & (t[..., None] <= far[:, None, :]))  # [Rc, S, K]
-        ri, si, ki = inside.nonzero(as_tuple=True)  # Q (sample, box) pairs, in ray order
-        slot = ri * k + ki  # [Q] (ray, candidate)
-        box = cand.clamp(min=0).reshape(-1)  # [Rc*K]
-        mat = local_from_head.reshape(-1, 3, 3)[box].view(rc, k, 3, 3)
-        o_local = torch.einsum("ri,rkij->rkj", o[0], mat) - centre_local.reshape(-1, 3)[box].view(rc, k, 3)
-        d_local = torch.einsum("ri,rkij->rkj", d[0], mat)  # [Rc, K, 3]
-        local = o_local.reshape(-1, 3)[slot] + t[ri, si][:, None] * d_local.reshape(-1, 3)[slot]  # [Q, 3]
-        base = box[slot] * m3  # [Q]
-        rows, w = _trilinear_corners(base, local, prims.voxels_per_side)  # [Q, 8]
-        sigma_k = (density[rows] * w).sum(1)  # [Q]
-        sample_id = ri * steps + si  # [Q]
-        sigma = torch.zeros(rc * steps, dtype=density.dtype, device=density.device).index_add(0, sample_id, sigma_k)
-        share = _sample_share(sigma.view(1, rc, steps), dt[None]).reshape(-1)  # [Rc*S]
-        weight = (w * (sigma_k * dt[ri] * share[sample_id])[:, None]).reshape(-1)  # [Q*8]
-        # Sum the weights per (ray, box, voxel) in a dense block, in ray order (no sort needed),
-        # a block of rays at a time so that no block exceeds max_pairs entries.
-        cell = (slot[:, None] * m3 + (rows - base[:, None])).reshape(-1)  # [Q*8], ascending by ray
-        per_block = max(1, max_pairs // (k * m3))
-        bounds = torch.searchsorted(cell, torch.arange(0, rc + per_block, per_block, device=cell.device) * (k * m3))
-        for j in range(0, rc, per_block):
-            lo, hi = int(bounds[j // per_block]), int(bounds[j // per_block + 1])
-            first = j * k * m3
-            block = torch.zeros(min(per_block, rc - j) * k * m3, dtype=density.dtype, device=density.device)
-            block.index_add_(0, cell[lo:hi] - first, weight[lo:hi])
-            nz = block.nonzero().squeeze(1) + first  # ascending: ray-major
-            ray, column = nz // (k * m3) + start, box[nz // m3] * m3 + nz % m3
-            order = torch.argsort(ray * (p * m3) + column)  # CSR wants each row's columns sorted
-            crow.append(ray[order])
-            ccol.append(column[order])
-            cval.append(block[nz - first][order])
-        alphas.append((sigma.view(rc, steps) * dt[:, None]).sum(-1).clamp(max=1.0))  # [Rc]
-    row_index = torch.cat(crow)
-    crow_index = torch.zeros(r + 1, dtype=torch.int64, device=row_index.device)
-    crow_index[1:] = torch.cumsum(torch.bincount(row_index, minlength=r), 0)
-    with warnings.catch_warnings():
-        warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta")
-        matrix = torch.sparse_csr_tensor(crow_index, torch.cat(ccol), torch.cat(cval), (r, p * m3),
-                                         check_invariants=True)
-    return ColourTransport(matrix, torch.cat(alphas))
 
 
 def raymarch_reference(prims: Primitives, rays_o: torch.Tensor, rays_d: torch.Tensor, steps: int) -> RenderResult:

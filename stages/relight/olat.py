@@ -36,7 +36,7 @@ import numpy as np
 from avatar.bake import direction_images
 from avatar.render import decode
 from scene.envmap import fibonacci_sphere, uniform_solid_angles_sr
-from scene.image_io import write_multipart_exr
+from scene.exr_layers import write_multipart_exr
 from stages.relight import sequences as seq
 
 OLAT_FORMAT = "olat-basis/1"

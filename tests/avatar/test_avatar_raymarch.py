@@ -8,7 +8,7 @@ import torch
 from scipy.spatial.transform import Rotation
 
 import avatar.raymarch_fused as fused
-from avatar.raymarch import Primitives, _to_local, colour_transport, raymarch, raymarch_reference
+from avatar.raymarch import Primitives, _to_local, raymarch, raymarch_reference
 
 
 def _scene(b: int = 2, p: int = 6, m: int = 4, r: int = 40, density: float = 3.0, seed: int = 0,
@@ -250,41 +250,3 @@ def test_fused_kernel_keeps_every_box_of_a_ray_that_crosses_more_than_its_first_
     w = torch.rand_like(a.rgb)
     for x, y in zip(_gradients(a, w, leaves), _gradients(b, w, leaves)):
         torch.testing.assert_close(x, y, rtol=1e-7, atol=1e-10)
-
-
-def _first(prims: Primitives) -> Primitives:
-    return Primitives(*(x[:1] for x in (prims.centre, prims.rotation, prims.half_extent, prims.rgb, prims.density)))
-
-
-def test_colour_transport_renders_any_colours_as_the_raymarch_does(kernel):
-    """The recorded weights times a colour grid are the raymarch of that grid (same opacity), for several grids at once."""
-    prims, o, d = _scene(density=6.0)  # many rays saturate: the weights carry the early termination
-    prims, o, d = _first(prims), o[:1], d[:1]
-    transport = colour_transport(prims, o, d, steps=24, kernel=kernel)
-    assert transport.matrix.layout == torch.sparse_csr and transport.nnz > 0
-    g = torch.Generator().manual_seed(5)
-    grids = [prims.rgb] + [torch.rand(prims.rgb.shape, generator=g, dtype=prims.rgb.dtype) for _ in range(2)]
-    stacked = torch.cat([x[0] for x in grids], -1)  # [P, M, M, M, 9]: three grids in one product
-    pixels = transport.apply(stacked)  # [R, 9]
-    for i, rgb in enumerate(grids):
-        res = raymarch(prims.with_rgb(rgb), o, d, steps=24, kernel=kernel)
-        torch.testing.assert_close(pixels[:, 3 * i:3 * i + 3], res.rgb[0], rtol=1e-9, atol=1e-11)
-        torch.testing.assert_close(transport.alpha, res.alpha[0], rtol=1e-9, atol=1e-11)
-    assert (res.alpha > 0.999).any() and (res.alpha < 0.5).any()
-
-
-def test_colour_transport_is_the_same_in_chunks():
-    prims, o, d = _scene(r=60)
-    prims, o, d = _first(prims), o[:1], d[:1]
-    whole = colour_transport(prims, o, d, steps=16, kernel="torch")
-    # Tiny budgets: several ray chunks, and several accumulation blocks within each.
-    for budget in (60, 7):
-        parts = colour_transport(prims, o, d, steps=16, max_pairs=budget, kernel="torch")
-        torch.testing.assert_close(parts.matrix.to_dense(), whole.matrix.to_dense(), rtol=1e-12, atol=1e-14)
-        torch.testing.assert_close(parts.alpha, whole.alpha, rtol=1e-12, atol=1e-14)
-
-
-def test_colour_transport_takes_one_geometry():
-    prims, o, d = _scene()
-    with pytest.raises(ValueError, match="batch 1"):
-        colour_transport(prims, o, d, steps=8)

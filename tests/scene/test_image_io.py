@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from scene.colour import srgb_decode, srgb_encode
-from scene.image_io import (read_exr, read_png, read_png16, write_exr, write_multipart_exr, write_png16,
-                            write_png_srgb)
+from scene.exr_layers import write_multipart_exr
+from scene.image_io import read_exr, read_png, read_png16, write_exr, write_png16, write_png_srgb
 
 
 @pytest.mark.parametrize("half,tol", [(True, 2e-3), (False, 0.0)])
