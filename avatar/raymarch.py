@@ -181,11 +181,11 @@ def resolve_kernel(kernel: RaymarchKernel, device: torch.device, dtype: torch.dt
 _CORNERS = torch.tensor([[dx, dy, dz] for dz in (0, 1) for dy in (0, 1) for dx in (0, 1)])  # [8, 3] (x, y, z)
 
 
-def _trilinear_gather(table: torch.Tensor, base: torch.Tensor, local: torch.Tensor, m: int) -> torch.Tensor:
-    """Trilinear lookup of voxel rows [Q, C] in ``table`` [*, C] at local coordinates [Q, 3].
+def trilinear_corners(base: torch.Tensor, local: torch.Tensor, m: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Rows [Q, 8] of the 8 voxels around local coordinates [Q, 3] and their trilinear weights [Q, 8].
 
     ``base`` [Q] is the row of each primitive's voxel (0, 0, 0); voxels are stored z-major.
-    One gather of all 8 corners (its backward is a single scatter-add).
+    Shared by the lookup below and the light-transfer bake's transport (``avatar.transport``).
     """
     g = ((local + 1.0) * 0.5 * m - 0.5).clamp(0.0, m - 1.0)  # [Q, 3] voxel coordinates (x, y, z)
     i0 = g.detach().floor().clamp(max=m - 2).long()  # [Q, 3]
@@ -197,6 +197,15 @@ def _trilinear_gather(table: torch.Tensor, base: torch.Tensor, local: torch.Tens
     wy = torch.stack([1.0 - f[:, 1], f[:, 1]], -1)
     wz = torch.stack([1.0 - f[:, 2], f[:, 2]], -1)
     w = (wz[:, :, None, None] * wy[:, None, :, None] * wx[:, None, None, :]).reshape(-1, 8)  # [Q, 8] (z, y, x)
+    return rows, w
+
+
+def _trilinear_gather(table: torch.Tensor, base: torch.Tensor, local: torch.Tensor, m: int) -> torch.Tensor:
+    """Trilinear lookup of voxel rows [Q, C] in ``table`` [*, C] at local coordinates [Q, 3].
+
+    One gather of all 8 corners (its backward is a single scatter-add).
+    """
+    rows, w = trilinear_corners(base, local, m)
     values = table[rows.reshape(-1)].view(rows.shape[0], 8, -1)  # [Q, 8, C]
     return (values * w[..., None]).sum(1)  # [Q, C]
 

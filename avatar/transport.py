@@ -23,29 +23,9 @@ from dataclasses import dataclass
 
 import torch
 
-from avatar.raymarch import (_CORNERS, Primitives, RaymarchKernel, _sample_share, _to_local, box_intervals,
-                             ray_samples, resolve_kernel)
+from avatar.raymarch import (Primitives, RaymarchKernel, _sample_share, _to_local, box_intervals,
+                             ray_samples, resolve_kernel, trilinear_corners)
 from avatar.raymarch_fused import fused_module
-
-
-def _trilinear_corners(base: torch.Tensor, local: torch.Tensor, m: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Rows [Q, 8] of the 8 voxels around local coordinates [Q, 3] and their trilinear weights [Q, 8].
-
-    ``base`` [Q] is the row of each primitive's voxel (0, 0, 0); voxels are stored z-major. The
-    lookup of ``avatar.raymarch._trilinear_gather`` (the same clamping and corner order), with
-    the rows and weights returned instead of the looked-up values.
-    """
-    g = ((local + 1.0) * 0.5 * m - 0.5).clamp(0.0, m - 1.0)  # [Q, 3] voxel coordinates (x, y, z)
-    i0 = g.detach().floor().clamp(max=m - 2).long()  # [Q, 3]
-    f = g - i0.to(g.dtype)  # [Q, 3] in [0, 1]
-    corners = _CORNERS.to(local.device)  # [8, 3]
-    idx = i0[:, None, :] + corners  # [Q, 8, 3]
-    rows = base[:, None] + (idx[..., 2] * m + idx[..., 1]) * m + idx[..., 0]  # [Q, 8]
-    wx = torch.stack([1.0 - f[:, 0], f[:, 0]], -1)  # [Q, 2]
-    wy = torch.stack([1.0 - f[:, 1], f[:, 1]], -1)
-    wz = torch.stack([1.0 - f[:, 2], f[:, 2]], -1)
-    w = (wz[:, :, None, None] * wy[:, None, :, None] * wx[:, None, None, :]).reshape(-1, 8)  # [Q, 8] (z, y, x)
-    return rows, w
 
 
 @dataclass
@@ -140,7 +120,7 @@ def colour_transport(prims: Primitives, rays_o: torch.Tensor, rays_d: torch.Tens
         d_local = torch.einsum("ri,rkij->rkj", d[0], mat)  # [Rc, K, 3]
         local = o_local.reshape(-1, 3)[slot] + t[ri, si][:, None] * d_local.reshape(-1, 3)[slot]  # [Q, 3]
         base = box[slot] * m3  # [Q]
-        rows, w = _trilinear_corners(base, local, prims.voxels_per_side)  # [Q, 8]
+        rows, w = trilinear_corners(base, local, prims.voxels_per_side)  # [Q, 8]
         sigma_k = (density[rows] * w).sum(1)  # [Q]
         sample_id = ri * steps + si  # [Q]
         sigma = torch.zeros(rc * steps, dtype=density.dtype, device=density.device).index_add(0, sample_id, sigma_k)
