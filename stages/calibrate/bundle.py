@@ -17,6 +17,7 @@ import numpy as np
 
 from scene.camera import Camera, Rigid
 from stages.calibrate.board import Detection
+from stages.calibrate.sources import COLMAP_PIXEL_OFFSET
 
 
 @dataclass
@@ -45,15 +46,16 @@ def _from_rigid3d(x) -> Rigid:
 CAMERA_MODELS = ("SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL_OPENCV")
 
 
-def _colmap_camera(cam: Camera, camera_id: int, model: str):
+def _colmap_camera(cam: Camera, camera_id: int, model: str, pixel_offset: float = 0.0):
     import pycolmap
 
     k1, k2, p1, p2, k3 = cam.dist
     f = 0.5 * (cam.fx + cam.fy)
-    params = {"SIMPLE_RADIAL": [f, cam.cx, cam.cy, k1],
-              "RADIAL": [f, cam.cx, cam.cy, k1, k2],
-              "OPENCV": [cam.fx, cam.fy, cam.cx, cam.cy, k1, k2, p1, p2],
-              "FULL_OPENCV": [cam.fx, cam.fy, cam.cx, cam.cy, k1, k2, p1, p2, k3, 0.0, 0.0, 0.0]}[model]
+    cx, cy = cam.cx + pixel_offset, cam.cy + pixel_offset
+    params = {"SIMPLE_RADIAL": [f, cx, cy, k1],
+              "RADIAL": [f, cx, cy, k1, k2],
+              "OPENCV": [cam.fx, cam.fy, cx, cy, k1, k2, p1, p2],
+              "FULL_OPENCV": [cam.fx, cam.fy, cx, cy, k1, k2, p1, p2, k3, 0.0, 0.0, 0.0]}[model]
     return pycolmap.Camera(model=model, width=cam.width, height=cam.height, camera_id=camera_id, params=params)
 
 
@@ -75,12 +77,14 @@ def _camera_from_colmap(name: str, c, cam_from_rig: Rigid) -> Camera:
 
 def build_reconstruction(cameras: dict[str, Camera], rig_from_frame: dict[int, Rigid],
                          detections: dict[str, list[Detection]], points_in_frame: dict[int, np.ndarray] | None,
-                         corners_board: np.ndarray, ref: str, model: str = "OPENCV"):
+                         corners_board: np.ndarray, ref: str, model: str = "OPENCV", pixel_offset: float = 0.0):
     """A pycolmap reconstruction: one rig of all cameras, one frame per board pose.
 
     With ``points_in_frame`` None the world is the board (corners shared by all frames, the
     BA model); otherwise each frame has its own 3D points (the studio-world export, where
-    every frame has the same rig pose and the board moves).
+    every frame has the same rig pose and the board moves). ``pixel_offset`` is added to
+    principal points and keypoints: 0 for the BA (OpenCV's pixel centres throughout), 0.5 for
+    a model written for COLMAP, whose pixel centres are at +0.5.
     """
     import pycolmap
 
@@ -89,7 +93,7 @@ def build_reconstruction(cameras: dict[str, Camera], rig_from_frame: dict[int, R
     cam_ids = {n: i + 1 for i, n in enumerate(names)}
     rig = pycolmap.Rig(rig_id=1)
     for n in names:
-        rec.add_camera(_colmap_camera(cameras[n], cam_ids[n], model))
+        rec.add_camera(_colmap_camera(cameras[n], cam_ids[n], model, pixel_offset))
     rig.add_ref_sensor(rec.camera(cam_ids[ref]).sensor_id)
     for n in names:
         if n != ref:
@@ -108,7 +112,7 @@ def build_reconstruction(cameras: dict[str, Camera], rig_from_frame: dict[int, R
             if det is None:
                 continue
             image_id += 1
-            image = pycolmap.Image(name=f"{n}/{f:04d}.exr", keypoints=det.corners_px,
+            image = pycolmap.Image(name=f"{n}/{f:04d}.exr", keypoints=det.corners_px + pixel_offset,
                                    camera_id=cam_ids[n], image_id=image_id)
             image.frame_id = f + 1
             frame.add_data_id(image.data_id)
@@ -175,12 +179,15 @@ def export_colmap(out_dir: Path, cameras_world: dict[str, Camera], detections: d
 
     One rig of all cameras; one frame per board pose, each at the rig's (fixed) world pose;
     the board corners of each pose as 3D points in world metres, observed by the images.
+    Pixel coordinates follow COLMAP's convention (pixel centres at +0.5), so COLMAP and
+    ``calibrate.source`` read the model as it is.
     """
     ref_from_world = cameras_world[ref].cam_from_world
     in_rig = {n: c.with_pose(c.cam_from_world @ ref_from_world.inverse(), "rig") for n, c in cameras_world.items()}
     frames = {f: ref_from_world for f in world_from_board}
     points = {f: pose.apply(corners_board) for f, pose in world_from_board.items()}
-    rec, _ = build_reconstruction(in_rig, frames, detections, points, corners_board, ref, model)
+    rec, _ = build_reconstruction(in_rig, frames, detections, points, corners_board, ref, model,
+                                  pixel_offset=COLMAP_PIXEL_OFFSET)
     for sub in ("text", "binary"):
         (out_dir / sub).mkdir(parents=True, exist_ok=True)
     rec.write_text(str(out_dir / "text"))

@@ -20,6 +20,7 @@ keypoints it holds), ``board_poses.json``, ``report.json`` and ``residuals/<cam>
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Literal
 
 import numpy as np
@@ -28,11 +29,21 @@ from pydantic import Field
 from pipeline.errors import InputError
 from pipeline.stage import Stage, StageContext, StageParams
 from scene.camera import Camera
-from stages.calibrate.board import CharucoFinder, Detection, FrameVerdict, load_board_spec
+from stages.calibrate.board import (
+    CharucoFinder,
+    Detection,
+    FrameVerdict,
+    load_board_spec,
+)
 from stages.calibrate.bundle import bundle_adjust, export_colmap
 from stages.calibrate.initial import calibrate_intrinsics, chain_poses
 from stages.calibrate.output import CalibrateOutput
 from stages.calibrate.report import plot_residuals, residuals_px
+from stages.calibrate.resolution import (
+    capture_cameras,
+    performance_size,
+    to_performance_resolution,
+)
 from stages.capture.output import CaptureOutput
 
 
@@ -57,36 +68,17 @@ class CalibrateParams(StageParams):
         None, description="Board frame shot in the fixture (defines the world); default: calib/board.json's.")
     allow_missing_cameras: bool = Field(
         False, description="Drop (with a warning) cameras that cannot be calibrated instead of failing.")
-
-
-def _performance_size(capture: CaptureOutput) -> tuple[int, int] | None:
-    """(width, height) of the performance images from the capture's manifest; None when it does not say."""
-    if not capture.has_manifest():
-        return None
-    d = capture.manifest()
-    try:
-        return (int(d["width"]), int(d["height"])) if "width" in d and "height" in d else None
-    except (ValueError, TypeError) as err:
-        raise capture.malformed(capture.manifest_path, f"bad width/height ({err})") from err
-
-
-def to_performance_resolution(cam: Camera, size: tuple[int, int] | None) -> Camera:
-    """``cam`` (calibrated at its board images' resolution) at the performance resolution ``size``."""
-    if size is None or size == (cam.width, cam.height):
-        return cam
-    factor = size[0] / cam.width
-    scaled = cam.scaled(factor)
-    if (scaled.width, scaled.height) != size:
-        raise InputError(f"camera {cam.name}: board images are {cam.width}x{cam.height} but the performance images "
-                         f"are {size[0]}x{size[1]} (the capture manifest), not the same aspect ratio; the calibration "
-                         "take must be shot with the performance's sensor crop")
-    return scaled
-
-
-def _list_cameras(capture: CaptureOutput) -> list[str]:
-    if capture.has_manifest():
-        return [str(c) for c in capture.manifest(keys=("cameras",))["cameras"]]
-    return capture.charuco_cameras()
+    source: str | None = Field(
+        None, description="An existing calibration to use instead of the board takes: a COLMAP model folder (text or "
+        "binary) or OpenCV-style camera files (a folder of <camera>.yaml/.json, or one JSON with 'cameras'; fields in "
+        "stages/calibrate/sources.py). Every capture camera must be in it; it is scaled to the performance images. "
+        "Leave unset to calibrate from the capture's ChArUco takes.")
+    source_units_m: float = Field(
+        1.0, gt=0, description="Metres per unit of the source's world coordinates: 0.001 for millimetres. A COLMAP "
+        "model from structure from motion has no metric scale; set this from a distance you know.")
+    max_source_reproj_px: float = Field(
+        1.0, gt=0, description="Refuse a source whose reprojection RMS for any camera (from its own points, where it "
+        "has them; board-image pixels) is above this: it does not describe this rig well.")
 
 
 def _detect_camera(capture: CaptureOutput, name: str, finder: CharucoFinder, log
@@ -120,15 +112,20 @@ def _detect_camera(capture: CaptureOutput, name: str, finder: CharucoFinder, log
 
 
 def run(ctx: StageContext) -> None:
-    """Calibrate every camera from the capture's board takes (see the module docstring)."""
+    """Calibrate every camera from the capture's board takes, or take an existing calibration (``source``)."""
     params: CalibrateParams = ctx.params  # type: ignore[assignment]
     capture = CaptureOutput(ctx.input("capture"))
     out = CalibrateOutput(ctx.out)
+    if params.source:
+        from stages.calibrate.from_source import calibrate_from_source
+
+        calibrate_from_source(capture, out, params, ctx.metrics, ctx.log)
+        return
     spec = load_board_spec(capture, ctx.log)
     reference_frame = spec.reference_pose_index if params.reference_frame is None else params.reference_frame
     corners_board = spec.corners_board()
     finder = CharucoFinder(spec, params.min_corners, params.max_saturated_fraction, params.max_edge_width_px)
-    names = _list_cameras(capture)
+    names = capture_cameras(capture)
 
     detections: dict[str, list[Detection]] = {}
     verdicts: dict[str, list[FrameVerdict]] = {}
@@ -183,7 +180,7 @@ def run(ctx: StageContext) -> None:
     world_from_board = {f: rig_from_world.inverse() @ p for f, p in ba.rig_from_board.items()}
 
     out.write_cameras_native(cameras)
-    perf_size = _performance_size(capture)
+    perf_size = performance_size(capture)
     out.write_cameras([to_performance_resolution(c, perf_size) for c in cameras])
     export_colmap(out.colmap_dir, {c.name: c for c in cameras}, detections, world_from_board, corners_board, ref,
                   params.camera_model)
@@ -197,7 +194,7 @@ def run(ctx: StageContext) -> None:
         rms = float(np.sqrt(np.mean(np.sum(res ** 2, axis=1))))
         plot_residuals(out.residuals_path(cam.name), cam, res, obs)
         report[cam.name] = {
-            "frames_used": len(detections[cam.name]), "corners_used": int(len(res)), "reproj_rms_px": rms,
+            "frames_used": len(detections[cam.name]), "corners_used": len(res), "reproj_rms_px": rms,
             "opencv_rms_px": intr[cam.name].rms_px,
             "frames": [_frame_entry(v, intr[cam.name].cam_from_board) for v in verdicts[cam.name]],
             "fx": cam.fx, "fy": cam.fy, "cx": cam.cx, "cy": cam.cy, "dist": list(cam.dist)}
@@ -214,7 +211,7 @@ def run(ctx: StageContext) -> None:
     ctx.metrics["cameras"] = len(cameras)
     ctx.metrics["cameras_dropped"] = len(problems)
     ctx.metrics["board_frames"] = len(world_from_board)
-    ctx.metrics["corners_used"] = int(len(res))
+    ctx.metrics["corners_used"] = len(res)
     ctx.metrics["frames_rejected_quality"] = sum(
         1 for v in verdicts.values() for x in v if not x.used and not x.reason.startswith("board not found"))
 
@@ -234,5 +231,9 @@ def _reason_summary(verdicts: list[FrameVerdict]) -> str:
     return ", ".join(f"{k}: {n}" for k, n in sorted(reasons.items()))
 
 
-STAGE = Stage(name="calibrate", inputs=("capture",), params=CalibrateParams, run=run,
+def _external(params: CalibrateParams) -> list[Path]:
+    return [Path(params.source).expanduser()] if params.source else []
+
+
+STAGE = Stage(name="calibrate", inputs=("capture",), params=CalibrateParams, run=run, external_inputs=_external,
               doc="ChArUco board takes -> intrinsics, distortion, extrinsics (pycolmap BA), COLMAP export.")
