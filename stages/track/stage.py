@@ -42,6 +42,7 @@ from scene.image_io import write_png8
 from stages.calibrate.output import CalibrateOutput
 from stages.capture.output import CaptureOutput
 from stages.track import topology
+from stages.track.from_meshes import MeshSourceParams
 from stages.track.interpolate import interpolate_track
 from stages.track.landmarks import (NUM_FACEMESH_LANDMARKS, DetectorParams, detect_files, landmark_subset,
                                     to_detector_image)
@@ -65,6 +66,13 @@ class TrackParams(StageParams):
     tracker: TrackerParams = Field(default_factory=TrackerParams, description="Embedding and fit settings.")
     obj_frames: int = Field(3, ge=0, description="Number of frames (evenly spread) also written as OBJ.")
     overlay_frames: int = Field(2, ge=0, description="Full-on frames drawn in overlay.png (one row of cameras each).")
+    source: str | None = Field(
+        None, description="Tracked meshes from elsewhere instead of landmark tracking: a folder of OBJ files named by "
+        "frame index, or an .npz with 'vertices' [N, V, 3] (and 'index' [N]); world space, the actor rig's topology. "
+        "Leave unset to track the capture's full-on frames.")
+    mesh_source: MeshSourceParams = Field(default_factory=MeshSourceParams,
+                                          description="How source meshes are read and posed; see "
+                                          "stages.track.from_meshes.MeshSourceParams.")
 
 
 def _full_on_frames(manifest: dict, capture: CaptureOutput) -> list[dict]:
@@ -211,14 +219,55 @@ def _write_overlay(ctx: StageContext, params: TrackParams, capture: CaptureOutpu
     write_png8(TrackOutput(ctx.out).overlay_path, sheet)
 
 
+def _run_from_meshes(ctx: StageContext, params: TrackParams, capture: CaptureOutput, manifest: dict,
+                     cams: list[Camera], rig: ActorRig) -> None:
+    """``track.source``: poses and weights from given meshes (``stages.track.from_meshes``), the same outputs."""
+    from stages.track.from_meshes import read_mesh_source, track_from_meshes
+
+    frames = sorted(manifest["frames"], key=lambda f: int(f["index"]))
+    index = np.array([int(f["index"]) for f in frames])
+    times = np.array([float(f["time_s"]) for f in frames])
+    source = read_mesh_source(params.source, rig.num_vertices, index, params.mesh_source.units_m)
+    fit = params.tracker.fit
+    track = track_from_meshes(rig, source, index, times, params.mesh_source, fit.weight_min, fit.weight_max, ctx.log)
+    out = TrackOutput(ctx.out)
+    out.write_tracking(
+        index=index, time_s=times, full_on=np.array([f.get("light") == "F" for f in frames]), fitted=track.given,
+        weights=track.weights.astype(np.float32), expression_names=np.array(rig.names, dtype=str),
+        world_from_head_R=track.world_from_head_R, world_from_head_t=track.world_from_head_t,
+        landmark_reproj_px=np.full(len(index), np.nan))
+    out.write_meshes(index, track.vertices_head, rig.faces.astype(np.int32))
+    # No landmarks were detected or embedded: empty tables keep the output's layout.
+    out.write_embedding(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 3)))
+    out.write_landmarks(index=np.zeros(0, np.int64), cameras=np.array([c.name for c in cams]),
+                        uv_px=np.zeros((0, len(cams), NUM_FACEMESH_LANDMARKS, 2), np.float32),
+                        score=np.zeros((0, len(cams))), status=np.zeros((0, len(cams)), dtype=str),
+                        contour_px=np.zeros((0, 2), np.float32), contour_count=np.zeros((0, len(cams)), np.int64))
+    out.write_cameras(cams)
+    if params.obj_frames:
+        out.make_obj_dir()
+        for k in np.unique(np.linspace(0, len(index) - 1, params.obj_frames).round().astype(int)):
+            _write_obj(out.obj_path(index[k]), track.vertices_head[k], rig.faces)
+    ctx.metrics.update({
+        "frames": len(index), "full_on_frames": int(sum(f.get("light") == "F" for f in frames)),
+        "source_meshes": len(source.index), "interpolated_frames": int((~track.given).sum()),
+        "source_stable_residual_mm_mean": float(track.stable_residual_mm.mean()),
+        "source_rig_fit_residual_mm_mean": float(track.rig_residual_mm.mean()),
+        "blendshapes": rig.num_shapes,
+    })
+
+
 def run(ctx: StageContext) -> None:
-    """Detect, embed, fit, interpolate, write (see the module docstring)."""
+    """Detect, embed, fit, interpolate, write (see the module docstring); or pose given meshes (``source``)."""
     params: TrackParams = ctx.params  # type: ignore[assignment]
     capture = CaptureOutput(ctx.input("capture"))
     manifest = capture.manifest()
+    rig = load_scan_rig(capture)
+    if params.source:
+        _run_from_meshes(ctx, params, capture, manifest, _cameras(ctx, manifest), rig)
+        return
     key_frames = _full_on_frames(manifest, capture)
     cams = _cameras(ctx, manifest)
-    rig = load_scan_rig(capture)
     try:
         ids = landmark_subset(params.landmark_groups)
         align_ids = landmark_subset(params.align_groups)
@@ -264,5 +313,9 @@ def run(ctx: StageContext) -> None:
     ctx.metrics.update(metrics)
 
 
-STAGE = Stage(name="track", inputs=("capture", "calibrate"), params=TrackParams, run=run,
+def _external(params: TrackParams) -> list[Path]:
+    return [Path(params.source).expanduser()] if params.source else []
+
+
+STAGE = Stage(name="track", inputs=("capture", "calibrate"), params=TrackParams, run=run, external_inputs=_external,
               doc="Landmark blendshape tracking on full-on frames; pose and weights for every frame.")
