@@ -256,7 +256,7 @@ def bake_figures(width: int = 96, height: int = 128, stage_rank: int = 32) -> di
     from avatar.render import PointLights, Rays, decode, render
     from scene.envmap import BackMask, RotatingProjection, fibonacci_sphere
     from scene.view import ViewSpec
-    from stages.relight.stage import DEFAULT_ENVMAPS
+    from stages.relight.params import DEFAULT_ENVMAPS
 
     model, mesh, image_scale, what = _bake_head()
     centre = tuple(float(v) for v in mesh.mean(0))
