@@ -220,13 +220,12 @@ class _Sweeper:
     """Renders (mesh, true weights, light) with the model and the studio from every camera."""
 
     def __init__(self, model, steps: int, subject, cameras) -> None:
-        from hardware.studio import RenderSettings, VirtualStudio
-        from scene.rig import load_rig
+        from hardware.studio.envmap_truth import truth_studio
 
         self.model, self.steps, self.cameras = model, steps, cameras
-        # One noiseless studio for the whole sweep (as hardware.studio.envmap_truth builds it),
-        # so the subject's geometry is built once per expression, not once per light.
-        self.studio = VirtualStudio(load_rig(), subject, RenderSettings(shot_noise_gain=0.0, read_noise=0.0))
+        # One noiseless studio for the whole sweep, so the subject's geometry is built once per
+        # expression, not once per light.
+        self.studio = truth_studio(subject)
         self.model_seconds = 0.0
         self.truth_seconds = 0.0
 
