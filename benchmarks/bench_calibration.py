@@ -55,26 +55,26 @@ def _noisy_copy(clean: Path, dst: Path, noise: float, keep_poses: int | None, se
 
 
 def _place_bars(capture: Path, calibrate: Path, truth: Path, work: Path) -> dict:
-    from pipeline.testing import run_stage_for_test
+    from pipeline.scratch import run_stage_in_folder
     from stages.lightcal.eval_stage import STAGE as EVAL
     from stages.lightcal.stage import STAGE
 
-    out = run_stage_for_test(STAGE, work, inputs={"capture": capture, "calibrate": calibrate})
-    ev = run_stage_for_test(EVAL, work, inputs={"lightcal": out, "capture.truth": truth})
+    out = run_stage_in_folder(STAGE, work, inputs={"capture": capture, "calibrate": calibrate})
+    ev = run_stage_in_folder(EVAL, work, inputs={"lightcal": out, "capture.truth": truth})
     return {**json.loads((out / "metrics.json").read_text()), **json.loads((ev / "metrics.json").read_text())}
 
 
 def _calibrate(capture: Path, truth: Path, work: Path) -> dict:
     from pipeline.errors import PipelineError
-    from pipeline.testing import run_stage_for_test
+    from pipeline.scratch import run_stage_in_folder
     from stages.calibrate.eval_stage import STAGE as EVAL
     from stages.calibrate.stage import STAGE
 
     try:
-        out = run_stage_for_test(STAGE, work, inputs={"capture": capture})
+        out = run_stage_in_folder(STAGE, work, inputs={"capture": capture})
     except PipelineError as err:  # too few poses for some camera: that is a result too
         return {"failed": str(err)[:160]}
-    ev = run_stage_for_test(EVAL, work, inputs={"calibrate": out, "capture.truth": truth})
+    ev = run_stage_in_folder(EVAL, work, inputs={"calibrate": out, "capture.truth": truth})
     m = {**json.loads((out / "metrics.json").read_text()), **json.loads((ev / "metrics.json").read_text())}
     return {k: m[k] for k in KEYS + ("board_frames", "corners_used", "volume_reproj_err_px_max",
                                       "volume_reproj_err_px_mean", "principal_err_px_max_native")}

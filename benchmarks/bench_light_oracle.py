@@ -112,7 +112,8 @@ def main() -> dict:
     from stages.train.evaluate import eval_pairs
     from stages.train.splits import make_splits
     from stages.report.light_oracle import capture_fingerprint
-    from stages.train.stage import TrainParams, bar_directions, exposure_of
+    from stages.train.params import TrainParams
+    from stages.train.setup import bar_directions, exposure_of
 
     subject = os.environ.get("ORACLE_SUBJECT", "bob")
     bar_samples = int(os.environ.get("ORACLE_BAR_SAMPLES", "16"))

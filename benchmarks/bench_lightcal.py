@@ -26,15 +26,15 @@ TARGET_MM = 10.0
 
 
 def _place(capture: Path, truth: Path, work: Path, **params) -> tuple[dict, dict, dict, float]:
-    from pipeline.testing import run_stage_for_test
+    from pipeline.scratch import run_stage_in_folder
     from stages.lightcal.eval_stage import STAGE as EVAL
     from stages.lightcal.output import LightcalOutput
     from stages.lightcal.stage import STAGE
 
     start = time.perf_counter()
-    out = run_stage_for_test(STAGE, work, inputs={"capture": capture, "calibrate": truth}, params=params)
+    out = run_stage_in_folder(STAGE, work, inputs={"capture": capture, "calibrate": truth}, params=params)
     seconds = time.perf_counter() - start
-    ev = run_stage_for_test(EVAL, work, inputs={"lightcal": out, "capture.truth": truth})
+    ev = run_stage_in_folder(EVAL, work, inputs={"lightcal": out, "capture.truth": truth})
     metrics = {**json.loads((out / "metrics.json").read_text()), **json.loads((ev / "metrics.json").read_text())}
     placed = LightcalOutput(out)
     bars = {int(b["id"]): b for b in placed.bars()}

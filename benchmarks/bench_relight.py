@@ -115,10 +115,10 @@ def time_fast_vs_naive(config, device: str, width: int, height: int, repeats: in
 
 
 def _studio_psnr(subject, frame, cam, envmap, lights, reference) -> float:
-    from hardware.studio.envmap_truth import _studio, studio_camera
+    from hardware.studio.envmap_truth import studio_camera, truth_studio
     from scene.lights import DirectionalLight
 
-    img = _studio(subject, None).render_lights(
+    img = truth_studio(subject).render_lights(
         frame, studio_camera(cam), [DirectionalLight(d, e) for d, e in zip(lights.directions_world, lights.irradiance_rgb)],
         noise=False).rgb
     white = max(float(np.percentile(reference, 99.5)), 1e-8)
@@ -127,7 +127,7 @@ def _studio_psnr(subject, frame, cam, envmap, lights, reference) -> float:
 
 
 def adaptive_and_chart(width: int = 48, height: int = 64) -> dict:
-    from hardware.studio.envmap_truth import _studio, frame_from_weights, studio_camera
+    from hardware.studio.envmap_truth import frame_from_weights, studio_camera, truth_studio
     from hardware.studio.subject import make_subject
     from avatar.config import AvatarConfig
     from avatar.render import DirectionalLights, decode, render
@@ -147,7 +147,7 @@ def adaptive_and_chart(width: int = 48, height: int = 64) -> dict:
         env = read_envmap(path)
         mask = BackMask()
         ref_lights = select_uniform(env, REFERENCE_DIRECTIONS, 0.0, mask, centroid=True)
-        reference = _studio(subject, None).render_lights(
+        reference = truth_studio(subject).render_lights(
             frame, studio_camera(cam), [DirectionalLight(d, e) for d, e in zip(ref_lights.directions_world, ref_lights.irradiance_rgb)],
             noise=False).rgb
         start = _clock("cpu")
@@ -256,7 +256,7 @@ def bake_figures(width: int = 96, height: int = 128, stage_rank: int = 32) -> di
     from avatar.render import PointLights, Rays, decode, render
     from scene.envmap import BackMask, RotatingProjection, fibonacci_sphere
     from scene.view import ViewSpec
-    from stages.relight.stage import DEFAULT_ENVMAPS
+    from stages.relight.params import DEFAULT_ENVMAPS
 
     model, mesh, image_scale, what = _bake_head()
     centre = tuple(float(v) for v in mesh.mean(0))

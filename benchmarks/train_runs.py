@@ -55,12 +55,12 @@ def _train_once(spec: dict) -> dict:
     import torch
 
     torch.set_num_threads(1)
-    from pipeline.testing import run_stage_for_test
+    from pipeline.scratch import run_stage_in_folder
     from stages.train.output import TrainOutput
     from stages.train.stage import STAGE
 
     workdir = Path(spec["workdir"])
-    out = run_stage_for_test(STAGE, workdir, {k: Path(v) for k, v in spec["inputs"].items()}, spec["params"])
+    out = run_stage_in_folder(STAGE, workdir, {k: Path(v) for k, v in spec["inputs"].items()}, spec["params"])
     return {"metrics": json.loads((out / "metrics.json").read_text()),
             "capacity": TrainOutput(out).capacity()}
 

@@ -1,23 +1,19 @@
-"""Run one stage's ``run`` function outside a workspace, for unit tests of stages.
+"""Helpers for unit tests of stages.
 
-The runner is the only thing that commits objects; this helper builds a ``StageContext`` over
-plain folders, with the runner's own progress lines and executor, so a stage's algorithm can
-be tested in isolation::
+``run_stage_for_test`` runs one stage's ``run`` function outside a workspace
+(``pipeline.scratch.run_stage_in_folder``, named for tests)::
 
     out = run_stage_for_test(SEQUENCE_STAGE, tmp_path, inputs={}, params={"fps": 24})
 """
 
 from __future__ import annotations
 
-import json
-import logging
 from pathlib import Path
 from typing import Any, Mapping
 
 from pipeline.executors import LocalExecutor
-from pipeline.progress import progress_factory
-from pipeline.metrics import clean_metrics
-from pipeline.stage import Stage, StageContext
+from pipeline.scratch import run_stage_in_folder
+from pipeline.stage import Stage
 
 
 class SerialExecutor(LocalExecutor):
@@ -30,34 +26,5 @@ class SerialExecutor(LocalExecutor):
 def run_stage_for_test(stage: Stage, workdir: Path, inputs: Mapping[str, Path] | None = None,
                        params: Mapping[str, Any] | None = None, *, subject: str = "test",
                        workers: int = 1) -> Path:
-    """Run ``stage`` with ``params`` over ``inputs``; returns its output folder.
-
-    Output goes to ``workdir/<stage.name>`` (extra outputs to ``workdir/<stage.name>.<extra>``),
-    metrics to ``metrics.json`` in it, exactly as the runner writes them. ``workers > 1`` runs
-    ``ctx.executor.map`` on a process pool as the runner would.
-    """
-    workdir = Path(workdir)
-    out = workdir / stage.name
-    out.mkdir(parents=True, exist_ok=False)
-    extra = {name: workdir / f"{stage.name}.{name}" for name in stage.extra_outputs}
-    for path in extra.values():
-        path.mkdir(parents=True, exist_ok=False)
-    log = logging.getLogger(f"stage.{stage.name}")
-    metrics: dict[str, float] = {}
-    factory = progress_factory(stage.name, log, tty=False)
-    with LocalExecutor(workers=workers, progress_factory=factory) as executor:
-        ctx = StageContext(
-            stage=stage.name, subject=subject, params=stage.params(**dict(params or {})),
-            inputs=dict(inputs or {}), out=out, extra_outputs=extra, log=log, metrics=metrics,
-            cache_dir=workdir / ".cache" / stage.name, shared_cache_dir=workdir / ".shared_cache",
-            executor=executor, progress_factory=factory,
-        )
-        ctx.cache_dir.mkdir(parents=True, exist_ok=True)
-        ctx.shared_cache_dir.mkdir(parents=True, exist_ok=True)
-        stage.run(ctx)
-    clean = clean_metrics(stage.name, metrics)
-    metrics_file = out / "metrics.json"
-    if metrics_file.is_file():
-        clean = {**json.loads(metrics_file.read_text(encoding="utf-8")), **clean}
-    metrics_file.write_text(json.dumps(clean, indent=1, sort_keys=True) + "\n", encoding="utf-8")
-    return out
+    """``run_stage_in_folder``: ``stage`` over ``inputs`` in ``workdir/<stage.name>``; returns that folder."""
+    return run_stage_in_folder(stage, workdir, inputs, params, subject=subject, workers=workers)

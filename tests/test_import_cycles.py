@@ -120,3 +120,12 @@ def test_the_orchestrator_and_the_shared_vocabulary_import_no_stage() -> None:
     assert edges.get("pipeline", set()) == set(), "pipeline/ must know nothing of faces or stages"
     assert edges.get("scene", set()) == set()
     assert not any(dep.startswith("stages") for dep in edges.get("avatar", set()) | edges.get("hardware.studio", set()))
+
+
+def test_no_project_module_imports_the_test_helpers() -> None:
+    """``pipeline.testing`` is for tests; benchmarks and stages run a stage alone through
+    ``pipeline.scratch`` or call the stage's own functions."""
+    graph = SourceGraph(REPO)
+    helpers = (REPO / "pipeline" / "testing.py").resolve()
+    importers = [graph.relpath(p) for p in _project_files(graph) if helpers in graph.imported_files(p)]
+    assert importers == [], f"import pipeline.testing (a test helper): {importers}"

@@ -59,10 +59,11 @@ def studio_camera(camera: Camera) -> Camera:
     return camera.with_pose(camera.cam_from_head, "world")
 
 
-def _studio(subject: Subject, settings: RenderSettings | None) -> VirtualStudio:
+def truth_studio(subject: Subject, settings: RenderSettings | None = None) -> VirtualStudio:
+    """The studio that renders ground truth under arbitrary lights: noise-free and deterministic
+    (``settings`` replaces the noiseless defaults); the rig only matters for its bars, unused here."""
     from scene.rig import load_rig
 
-    # Noise-free, deterministic; the rig only matters for its bars, which are not used here.
     return VirtualStudio(load_rig(), subject, settings or RenderSettings(shot_noise_gain=0.0, read_noise=0.0))
 
 
@@ -79,7 +80,7 @@ def envmap_truth_lights(envmap: EnvMap, directions: int = 1024) -> list[Directio
 def render_envmap_truth(subject: Subject, frame: FrameState, camera: Camera, envmap: EnvMap,
                         directions: int = 1024, settings: RenderSettings | None = None) -> RenderResult:
     """The studio's render of ``frame`` from ``camera`` (posed in head space = world) lit by ``envmap``."""
-    return _studio(subject, settings).render_lights(frame, studio_camera(camera),
+    return truth_studio(subject, settings).render_lights(frame, studio_camera(camera),
                                                     envmap_truth_lights(envmap, directions), noise=False)
 
 
@@ -87,4 +88,4 @@ def render_point_truth(subject: Subject, frame: FrameState, camera: Camera, posi
                        intensity_rgb: np.ndarray, settings: RenderSettings | None = None) -> RenderResult:
     """The studio's render under one isotropic point light (near-field: 1/r^2 and shadows per pixel)."""
     light = PointLight(np.asarray(position_world, float), np.asarray(intensity_rgb, float))
-    return _studio(subject, settings).render_lights(frame, studio_camera(camera), [light], noise=False)
+    return truth_studio(subject, settings).render_lights(frame, studio_camera(camera), [light], noise=False)

@@ -105,7 +105,7 @@ def import_capture(ctx: StageContext, source: Path) -> dict:
     out = CaptureOutput(ctx.out)
     out.write_controller_log({"fps": fps, "entries": entries})
     manifest, metrics = label_and_place(
-        ctx, fps, cam_names, int(info.get("bars", 32)), takes, take_of, entries, brightness, n_triggers,
+        out, ctx.log, ctx.subject, fps, cam_names, int(info.get("bars", 32)), takes, take_of, entries, brightness, n_triggers,
         received=lambda cam, r: files[cam][r], place=link_or_copy, frame_times=frame_times)
     manifest.update(subject=str(info.get("subject", ctx.subject)), width=width, height=height)
     out.write_manifest(manifest)

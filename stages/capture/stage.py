@@ -206,9 +206,9 @@ def _virtual_capture(ctx: StageContext, params: CaptureParams) -> dict:
         rng = np.random.default_rng([params.render.seed, 7])
         frame_times = [[i / fps + params.camera_timestamp_jitter_s * rng.standard_normal() for i in stream]
                        for stream in streams]
-    manifest, label_metrics = label_and_place(ctx, fps, cam_names, len(rig.bars), params.takes,
-                                               [f.take for f in performance], log_json, brightness, n_frames,
-                                               frame_times=frame_times)
+    manifest, label_metrics = label_and_place(out, ctx.log, ctx.subject, fps, cam_names, len(rig.bars),
+                                               params.takes, [f.take for f in performance], log_json,
+                                               brightness, n_frames, frame_times=frame_times)
     manifest.update(width=cameras[0].width, height=cameras[0].height)
     out.write_manifest(manifest)
     lost_images = n_frames * len(cameras) - sum(r["images"] for r in results)

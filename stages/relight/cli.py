@@ -87,12 +87,11 @@ def main(argv: list[str] | None = None) -> int:
 def _render(args: argparse.Namespace, log: logging.Logger) -> int:
     from pipeline.executors import LocalExecutor
     from pipeline.project import find_project_root
-    from pipeline.stage import StageContext
-    from pipeline.progress import progress_factory
     from pipeline.workspace import Workspace, workspace_root
     from stages.evaluate.limits import workspace_light_warnings
+    from stages.relight.params import RelightParams
+    from stages.relight.render_all import render_all
     from stages.relight.sequences import read_light_position
-    from stages.relight.stage import RelightParams, run
 
     if args.frames < 1:
         raise ConfigError(f"--frames {args.frames}: must be at least 1")
@@ -139,15 +138,14 @@ def _render(args: argparse.Namespace, log: logging.Logger) -> int:
         if not sequences:
             print(f"OLAT basis in {out / 'olat'}")
             return 0
+    # Frames and bakes are cached beside the renders: rendering more frames into the same folder
+    # renders only the new ones.
     (out / ".cache").mkdir(exist_ok=True)
-    ctx = StageContext(stage="render", subject=args.subject, params=params, inputs=inputs, out=out, extra_outputs={},
-                       log=log, metrics={}, cache_dir=out / ".cache", shared_cache_dir=out / ".cache",
-                       executor=LocalExecutor(workers=1), progress_factory=progress_factory("render", log))
     with warnings.catch_warnings():
         warnings.simplefilter("always")
         logging.captureWarnings(True)
-        run(ctx)
-    (out / "metrics.json").write_text(json.dumps(ctx.metrics, indent=1, sort_keys=True))
+        metrics = render_all(inputs, params, out, out / ".cache", log, LocalExecutor(workers=1))
+    (out / "metrics.json").write_text(json.dumps(metrics, indent=1, sort_keys=True))
     print(f"renders in {out}")
     return 0
 

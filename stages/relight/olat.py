@@ -95,7 +95,7 @@ def export_olat_basis(inputs: dict[str, Path], params, count: int, out: Path, ey
     envmap conventions recorded in the JSON, device).
     """
     from pipeline.devices import resolve_device
-    from stages.relight.stage import load_inputs
+    from stages.relight.inputs import load_inputs
 
     if count < 1:
         raise ValueError(f"--olat-basis {count}: needs at least one direction")

@@ -5,7 +5,7 @@ Usage (what the launcher runs)::
     python -m torch.distributed.run --standalone --nproc_per_node N -m stages.train.ddp_worker JOB.json
 
 Reads the job file, joins the process group (nccl with one GPU per rank, gloo on CPU), and
-runs ``stages.train.stage.train`` as rank ``RANK`` of ``WORLD_SIZE``. Rank 0 writes the
+runs ``stages.train.stage.train_in_folders`` as rank ``RANK`` of ``WORLD_SIZE``. Rank 0 writes the
 outputs, checkpoints and the metrics file named in the job.
 """
 
@@ -23,11 +23,8 @@ import torch
 import torch.distributed as dist
 
 from pipeline.devices import resolve_device
-from pipeline.executors import LocalExecutor
 from pipeline.progress import SilentProgress, progress_factory
-from pipeline.stage import StageContext
-from stages.train.stage import TrainParams, train
-
+from stages.train.stage import TRAIN_INPUTS, TrainFolders, TrainParams, train_in_folders
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -46,14 +43,10 @@ def main(argv: list[str] | None = None) -> int:
     log = logging.getLogger(f"stage.{job['stage']}")
     dist.init_process_group("nccl" if device.type == "cuda" else "gloo", timeout=timedelta(minutes=30))
     try:
-        metrics: dict[str, float] = {}
         factory = progress_factory(job["stage"], log, tty=False) if rank == 0 else (lambda total, unit: SilentProgress())
-        ctx = StageContext(stage=job["stage"], subject=job["subject"], params=params,
-                           inputs={k: Path(v) for k, v in job["inputs"].items()}, out=Path(job["out"]),
-                           extra_outputs={}, log=log, metrics=metrics, cache_dir=Path(job["cache_dir"]),
-                           shared_cache_dir=Path(job["shared_cache_dir"]), executor=LocalExecutor(workers=1),
-                           progress_factory=factory)
-        train(ctx, rank=rank, world_size=world, device=device)
+        folders = TrainFolders(inputs={k: Path(job["inputs"][k]) for k in TRAIN_INPUTS}, out=Path(job["out"]),
+                               cache_dir=Path(job["cache_dir"]))
+        metrics = train_in_folders(folders, params, log, factory, rank=rank, world_size=world, device=device)
         if rank == 0:
             Path(job["metrics"]).write_text(json.dumps(metrics))
         # Release every DDP wrapper (and its reference to the process group) before the group is

@@ -25,7 +25,7 @@ PROJECT_ROOT = Path(__file__).resolve().parents[2]
 
 
 class DdpSettings(Protocol):
-    """The train params the launcher reads (``stages.train.stage.TrainParams`` has them; the
+    """The train params the launcher reads (``stages.train.params.TrainParams`` has them; the
     launcher does not import it, so the stage and its launcher do not import each other)."""
 
     device: str

@@ -153,6 +153,14 @@ class TrainTensors:
         """Image (f, c) [H*W, 3] on ``device``."""
         return self.images[f, c].to(self.device)
 
+    def target_images(self, pairs: list[tuple[int, int]]) -> torch.Tensor:
+        """The captured images [K, H, W, 3] of (frame, camera) ``pairs``, on ``device``."""
+        return torch.stack([self.image(f, c).view(self.height, self.width, 3) for f, c in pairs])
+
+    def target_mattes(self, pairs: list[tuple[int, int]]) -> torch.Tensor:
+        """The mattes [K, H, W] (float) of (frame, camera) ``pairs``, on ``device``."""
+        return torch.stack([self.mattes[f, c].float().view(self.height, self.width) for f, c in pairs]).to(self.device)
+
     def sampling_weights(self, frames: torch.Tensor, cams: torch.Tensor) -> torch.Tensor:
         """Ray sampling weights [B, H*W] on the CPU: foreground, grown by 3 px, weighs 1.1, background 0.1."""
         src = self.mattes.device

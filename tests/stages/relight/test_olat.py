@@ -13,7 +13,7 @@ import OpenEXR
 import pytest
 
 from stages.relight.cli import main
-from stages.relight.stage import ASSETS
+from stages.relight.params import ASSETS
 from tests.stages.relight.test_stage import inputs  # noqa: F401  (fixture)
 
 COUNT = 40

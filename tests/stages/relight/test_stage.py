@@ -9,7 +9,7 @@ import pytest
 from pipeline.errors import InputError
 from pipeline.testing import run_stage_for_test
 from stages.relight.stage import STAGE
-from stages.relight.stage import ASSETS as STAGE_ASSETS
+from stages.relight.params import ASSETS as STAGE_ASSETS
 from tests.stages.relight.conftest import fail_on_call, write_relight_inputs
 
 FAST = {"envmaps": ["blender-cc0/studio.exr"], "envmap_frames": 2, "directions": 32, "orbit_frames": 3,

@@ -16,7 +16,8 @@ from pipeline.errors import ConfigError
 from pipeline.progress import SilentProgress
 from pipeline.testing import run_stage_for_test
 from stages.train import trainer as trainer_mod
-from stages.train.stage import STAGE, TrainParams, capacity_of
+from stages.train.setup import capacity_of
+from stages.train.stage import STAGE, TrainParams
 from tests.stages.train.train_synth import SMALL_AVATAR, small_model
 
 BASE = {"avatar": SMALL_AVATAR, "image_width_px": 24, "batch_size": 2, "rays_per_image": 64, "eval_images": 2,

@@ -145,11 +145,11 @@ def small_model(data, seed: int = 0):
     from avatar.layout import build_layout
     from avatar.model import RelightableMVP
     from stages.train import trainer as trainer_mod
-    from stages.train.stage import _tensors
+    from stages.train.setup import training_tensors
 
     config = AvatarConfig(**SMALL_AVATAR)
     layout = build_layout(data.vertices.mean(0), data.triangles, config.prims_per_side)
-    tensors = _tensors(data, layout.guide_vertex_ids, torch.device("cpu"))
+    tensors = training_tensors(data, layout.guide_vertex_ids, torch.device("cpu"))
     torch.manual_seed(seed)
     model = RelightableMVP(config, layout, data.num_bars)
     renderer = trainer_mod.Renderer(model, "ours", None, sorted(set(data.bar.tolist())))

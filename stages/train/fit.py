@@ -1,0 +1,114 @@
+"""Train the heads (ours, TRAvatar*) on a ``TrainingSetup``: models, trainers, and the training itself.
+
+Reads nothing but the setup and the params; writes only the trainers' checkpoints (into the
+folder it is given, so a killed run resumes) and, where a writer is given, TensorBoard events.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+import torch
+
+from avatar.model import RelightableMVP, count_parameters
+from avatar.raymarch import RaymarchKernel
+from pipeline.stage import Progress
+from stages.train.evaluate import image_metrics
+from stages.train.params import TrainParams
+from stages.train.setup import TrainingSetup
+from stages.train.side_by_side import train_models
+from stages.train.trainer import ModelTrainer, Renderer, TrainState, TrainTensors
+
+
+@dataclass
+class TrainedHeads:
+    """The trained models of a run.
+
+    Attributes:
+        kinds: the model kinds in training order (``"ours"``, then ``"travatar"`` with a baseline).
+        renderers: each kind's renderer (its ``model`` in eval mode).
+        states: each kind's final training state (iterations, times, rollbacks, learning curve).
+        parameters: each kind's parameter count.
+        training_seconds: wall-clock time of the training; the kinds' own ``train_seconds``
+            overlap when they train side by side.
+    """
+
+    kinds: list[str]
+    renderers: dict[str, Renderer]
+    states: dict[str, TrainState]
+    parameters: dict[str, int]
+    training_seconds: float
+
+    def metrics(self) -> dict[str, float]:
+        """Each kind's parameters, iterations, training time, rollbacks and primitives."""
+        out: dict[str, float] = {f"{kind}_parameters": self.parameters[kind] for kind in self.kinds}
+        for kind in self.kinds:
+            model, state = self.renderers[kind].model, self.states[kind]
+            out[f"{kind}_iterations"] = state.iteration
+            out[f"{kind}_seconds"] = state.train_seconds
+            out[f"{kind}_rollbacks"] = state.rollbacks
+            out[f"{kind}_pruned_primitives"] = model.num_pruned
+            out[f"{kind}_primitives"] = model.config.num_prims
+        return out
+
+
+def fit_heads(setup: TrainingSetup, num_bars: int, params: TrainParams, device: torch.device,
+              kernel: RaymarchKernel, checkpoints: Path, log: logging.Logger,
+              progress: Callable[[int, str], Progress], writer: Any = None, rank: int = 0,
+              world_size: int = 1) -> TrainedHeads:
+    """Build and train every model kind of ``params``; ``checkpoints`` holds ``<kind>.pt`` (resumed if there).
+
+    Each model is initialised from ``params.seed`` right before it is built, so its weights do
+    not depend on what was built before it. Only rank 0 records the learning curve (``writer``
+    too, where given).
+    """
+    avatar, tensors, lead = setup.avatar, setup.tensors, rank == 0
+    kinds = ["ours"] + (["travatar"] if params.baseline else [])
+    renderers: dict[str, Renderer] = {}
+    trainers: dict[str, ModelTrainer] = {}
+    parameters: dict[str, int] = {}
+    for kind in kinds:
+        config = avatar if kind == "ours" else avatar.model_copy(update={"light_basis": len(setup.basis_bars)})
+        torch.manual_seed(params.seed)
+        model = RelightableMVP(config, setup.layout, num_bars).to(device)
+        renderer = renderers[kind] = Renderer(model, kind, setup.basis if kind == "travatar" else None,
+                                              setup.basis_bars, kernel=kernel)
+        iterations = params.iterations if kind == "ours" else (params.baseline_iterations or params.iterations)
+        trainers[kind] = ModelTrainer(
+            renderer, tensors, setup.fitted_frames, iterations=iterations, batch_size=params.batch_size,
+            rays_per_image=params.rays_per_image, lr=params.lr, weights=params.loss_weights, seed=params.seed,
+            ckpt_path=checkpoints / f"{kind}.pt", checkpoint_every=params.checkpoint_every,
+            spike_factor=params.spike_factor, log=log, curve_every=params.curve_every,
+            curve_fn=_curve_psnr(renderer, tensors, setup.curve_pairs) if lead else None, writer=writer,
+            lr_decay_to=params.lr_decay_to, rank=rank, world_size=world_size,
+            prune=params.pruning.schedule(iterations), weight_average=params.weight_average)
+        parameters[kind] = count_parameters(model)
+        log.info("%s: %d parameters, %d primitives of %d^3 voxels", kind, parameters[kind],
+                 config.num_prims, config.voxels_per_side)
+    total = sum(t.iterations for t in trainers.values())
+    if params.parallel_models > 1 and len(kinds) > 1:
+        log.info("training %s side by side (train.parallel_models=%d)", " and ".join(kinds), params.parallel_models)
+    started = time.perf_counter()
+    with progress(total, "it") as bar:
+        states = train_models(trainers, bar, params.parallel_models)
+    training_seconds = time.perf_counter() - started
+    for renderer in renderers.values():
+        renderer.model.eval()
+    return TrainedHeads(kinds=kinds, renderers=renderers, states=states, parameters=parameters,
+                        training_seconds=training_seconds)
+
+
+def _curve_psnr(renderer: Renderer, tensors: TrainTensors, pairs: list[tuple[int, int]]) -> Callable[[], float]:
+    """The learning curve's measure: the novel-light PSNR of ``pairs`` (NaN without any)."""
+
+    def psnr() -> float:
+        if not pairs:
+            return float("nan")
+        pred, _ = renderer.render_images(tensors, pairs)
+        return image_metrics(pred, tensors.target_images(pairs), scale=True)["psnr"]
+
+    return psnr

@@ -1,0 +1,84 @@
+"""The train stage's params: the model, its capacity rule, the run length and the held-out splits."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import Field
+
+from avatar.capacity import CapacityRule
+from avatar.config import AvatarConfig
+from avatar.raymarch import RaymarchKernel
+from pipeline.devices import DeviceChoice
+from pipeline.stage import StageParams
+from stages.train.trainer import LossWeights, Pruning
+
+
+class TrainParams(StageParams):
+    """Parameters of the train stage (defaults: the tiny, CPU-sized run)."""
+
+    avatar: AvatarConfig = Field(default_factory=AvatarConfig.tiny,
+                                 description="Model sizes (N, M, latent, channels, raymarch steps); see avatar.config. "
+                                 "With capacity 'auto' the rule replaces N, M, the channel widths, the steps and the "
+                                 "latent size.")
+    capacity: Literal["auto", "fixed"] = Field(
+        "fixed", description="'auto': primitives, voxels per primitive, channel widths, raymarch steps and latent "
+        "size chosen from the capture (training image size, the head's footprint in the mattes, training frames, "
+        "expression modes of the training meshes) by avatar.capacity; 'fixed': the avatar section as given.")
+    capacity_rule: CapacityRule = Field(default_factory=CapacityRule,
+                                        description="Constants of the capacity rule (capacity 'auto').")
+    pruning: Pruning = Field(default_factory=Pruning,
+                             description="When and how empty primitives are pruned; see stages.train.trainer.Pruning.")
+    image_width_px: int = Field(64, ge=0, description="Training/evaluation image width in pixels (0 = the capture's).")
+    max_frames: int = Field(0, ge=0, description="Use at most this many OLAT frames, evenly spread (0 = all).")
+    resident_limit_gb: float = Field(8.0, ge=0, description="Training images and mattes larger than this (GB, "
+                                     "float32) are memory-mapped from the stage's cache folder and gathered per "
+                                     "batch instead of being held in RAM or on the GPU.")
+    iterations: int = Field(2000, ge=1, description="Training iterations of our model.")
+    baseline: bool = Field(True, description="Also train the TRAvatar* baseline on the same data.")
+    baseline_iterations: int = Field(0, ge=0, description="Training iterations of TRAvatar* (0 = same as ours).")
+    batch_size: int = Field(4, ge=1, description="Images per iteration (the paper: 12).")
+    rays_per_image: int = Field(256, ge=1, description="Rays sampled per image per iteration (foreground-weighted).")
+    lr: float = Field(1e-3, gt=0, description="Adam learning rate (the paper: 1e-4).")
+    lr_decay_to: float = Field(0.1, gt=0, le=1, description="Final learning rate as a fraction of lr "
+                               "(exponential decay over the run; 1 = constant, as the paper).")
+    weight_average: float = Field(0.0, ge=0, lt=1, description="Decay per iteration of an exponential moving "
+                                  "average of the weights, evaluated and saved instead of the last iterate (0 = "
+                                  "the last iterate, as the paper; 0.998 averages over roughly the last 500 "
+                                  "iterations). Both models alike. Leave it at 0 unless you are experimenting: on the "
+                                  "tiny preset it cost ours on alice, whose encoder and decoders still move together "
+                                  "late in training and no longer match once averaged apart (docs/experiments.md, "
+                                  "section 1).")
+    loss_weights: LossWeights = Field(default_factory=LossWeights,
+                                      description="Weights of the loss terms (photometric, guide mesh, volume, KL, "
+                                      "matte); see stages.train.trainer.LossWeights.")
+    held_out_bars: int = Field(3, ge=1, description="Interior bars held out for the novel-light split.")
+    held_out_take: str = Field("", description="Take whose final segment is the novel performance ('' = the last take).")
+    held_out_fraction: float = Field(0.5, gt=0, le=1, description="Final fraction of that take held out (1 = all of it).")
+    fit_frames: int = Field(0, ge=0, description="Diagnostic: optimise on only the first K training frames (all "
+                            "their cameras; 0 = every training frame). With 1 it measures how well the model's "
+                            "capacity can fit one frame in the iteration budget (train_psnr), an upper bound for "
+                            "the held-out figures; the layout, light basis and capacity still come from every "
+                            "training frame.")
+    eval_images: int = Field(12, ge=1, description="Held-out images rendered per split for the metrics.")
+    lpips: bool = Field(True, description="Compute LPIPS (AlexNet weights from assets/lpips).")
+    curve_every: int = Field(100, ge=0, description="Iterations between learning-curve points (0 = none).")
+    curve_images: int = Field(3, ge=1, description="Novel-light images per learning-curve point.")
+    checkpoint_every: int = Field(50, ge=1, description="Iterations between checkpoints (resume after a kill).")
+    spike_factor: float = Field(10.0, gt=1, description="A loss above this multiple of its running mean rolls back.")
+    seed: int = Field(0, description="Seed of initialisation and sampling.")
+    threads: int = Field(0, ge=0, description="torch CPU threads (0 = torch's default).")
+    device: DeviceChoice = Field("auto", description="'auto' (CUDA if present), 'cpu' or 'cuda'.")
+    raymarch_kernel: RaymarchKernel = Field(
+        "auto", description="'fused': the C++ CPU raymarcher (avatar.raymarch_fused, built on first use, needs a C++ "
+        "compiler; several times the training iterations/s of 'torch' on the CPU, docs/experiments.md, section 4); "
+        "'torch': tensor ops (CPU or GPU); 'auto': fused on the CPU where a C++ compiler builds it, else torch with "
+        "a warning. The same images either way, up to float rounding. Set 'fused' to fail instead of falling back.")
+    previews: int = Field(2, ge=0, description="Preview images written per split.")
+    parallel_models: int = Field(1, ge=1, description="Models (ours, TRAvatar*) trained at the same time, each in its "
+                                 "own thread of this process: 2 trains both side by side, in about the time of one "
+                                 "on a CPU with threads: 1 (stages.train.side_by_side); the same numbers as 1, which "
+                                 "trains them one after another. Needs processes: 1.")
+    processes: int = Field(1, ge=1, description="Data-parallel training processes (torch.distributed DDP, launched "
+                           "with torchrun; gloo on CPU, nccl with one GPU per process). batch_size is the global "
+                           "batch and must divide by it; 1 = train in the stage's own process.")
