@@ -39,7 +39,7 @@ ROTATIONS = tuple(range(0, 360, 36))
 
 def _session(model, mesh, image_scale: float, width: int, height: int):
     from stages.relight.lookdev import LookDevSession, LookSettings, MapCatalogue
-    from stages.relight.stage import ASSETS
+    from stages.relight.params import ASSETS
 
     maps = MapCatalogue([("studio.exr", ASSETS / "blender-cc0" / "studio.exr")])
     return LookDevSession(model, image_scale, mesh[None], maps, LookSettings(width_px=width, height_px=height))

@@ -61,7 +61,8 @@ def _parser() -> argparse.ArgumentParser:
     return p
 
 
-def _stage_folder(workspace, stage: str) -> Path:
+def stage_folder(workspace, stage: str) -> Path:
+    """The object folder of ``stage``'s current output in ``workspace``; ``InputError`` saying what to run if none."""
     ref = workspace.read_ref(stage)
     if ref is None or "out" not in ref.outputs:
         raise InputError(f"subject '{workspace.subject}' has no '{stage}' output yet; run "
@@ -125,7 +126,7 @@ def _render(args: argparse.Namespace, log: logging.Logger) -> int:
         directions=args.directions)
     root = find_project_root()
     workspace = Workspace(workspace_root(root, args.workspaces), args.subject)
-    inputs = {s: _stage_folder(workspace, s) for s in ("train", "track", "capture")}
+    inputs = {s: stage_folder(workspace, s) for s in ("train", "track", "capture")}
     # The evaluate stage's measured warning zone (nothing when the subject was never evaluated).
     for message in workspace_light_warnings(workspace, points, args.orbit, args.frames if args.orbit > 0 else 0):
         log.warning(message)

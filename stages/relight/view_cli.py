@@ -49,7 +49,7 @@ def _parser() -> argparse.ArgumentParser:
 
 def map_files(given: list[str], shipped: bool) -> list[tuple[str, Path]]:
     """(label, file) of every map the viewer may serve: the given ones first, then the shipped ones."""
-    from stages.relight.stage import ASSETS
+    from stages.relight.params import ASSETS
 
     files = [(Path(g).name, Path(g).expanduser()) for g in given]
     if shipped:
@@ -79,7 +79,7 @@ def _view(args: argparse.Namespace) -> int:
     from pipeline.devices import resolve_device
     from pipeline.project import find_project_root
     from pipeline.workspace import Workspace, workspace_root
-    from stages.relight.cli import _stage_folder
+    from stages.relight.cli import stage_folder
     from stages.relight.lookdev import LookSettings, load_session
     from stages.relight.viewer_server import build_app, serve
 
@@ -96,7 +96,7 @@ def _view(args: argparse.Namespace) -> int:
         torch.set_num_threads(args.threads)
     device = resolve_device(args.device, "--device")
     workspace = Workspace(workspace_root(find_project_root(), args.workspaces), args.subject)
-    inputs = {s: _stage_folder(workspace, s) for s in ("train", "track")}
+    inputs = {s: stage_folder(workspace, s) for s in ("train", "track")}
     settings = LookSettings(width_px=args.width, height_px=args.height, directions=args.directions,
                             bake_rank=args.bake_rank)
     session = load_session(inputs, files, settings, device)
