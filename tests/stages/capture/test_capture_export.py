@@ -76,18 +76,41 @@ def test_a_deleted_image_and_a_link_outside_are_reported(virtual_capture: Path, 
         export_capture(virtual_capture, folder)
 
 
+def _export_command(tmp_path: Path, subject: str, *extra: str, image_scale: float = 0.08) -> subprocess.CompletedProcess:
+    """``pipeline hw export-capture`` at test size in a workspace root of its own."""
+    small = {**SMALL, "image_scale": image_scale}
+    sets = [f"capture.{key}={json.dumps(value)}" for key, value in small.items() if key != "render"]
+    sets += ["capture.render.edge_samples=2", "capture.render.bar_samples=1", "sequence.cycles=1",
+             "sequence.restarts=1", "sequence.random_baseline_samples=4"]
+    env = dict(os.environ, PIPELINE_WORKSPACES=str(tmp_path / "ws"), PIPELINE_PROJECT_ROOT=str(ROOT))
+    command = [sys.executable, "-m", "pipeline.cli", "hw", "export-capture", "-S", subject, "--out",
+               str(tmp_path / "export"), "--workers", "1", *extra]
+    return subprocess.run([*command, *(a for s in sets for a in ("--set", s))], cwd=ROOT, env=env,
+                          capture_output=True, text=True, timeout=300)
+
+
+def test_a_subject_with_its_own_rig_exports_checks_and_imports(tmp_path: Path) -> None:
+    """configs/subjects/studio6.yaml: 6 cameras, 20 bars, 30 fps, landscape, an F frame every 4th frame."""
+    done = _export_command(tmp_path, "studio6", image_scale=0.25)
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert "6 cameras, 72 images, 12 controller log entries" in done.stdout
+    folder = tmp_path / "export"
+    info = json.loads((folder / "capture.json").read_text())
+    assert (info["fps"], info["bars"], len(info["cameras"])) == (30.0, 20, 6)
+    lights = [e["light"] for e in json.loads((folder / "controller_log.json").read_text())["entries"]]
+    assert [i for i, light in enumerate(lights) if light == "F"] == [0, 4, 8]
+    assert check_main([str(folder)]) == 0
+    imported = run_stage_for_test(CAPTURE, tmp_path / "w", params={"source": str(folder)})
+    manifest = json.loads((imported / "manifest.json").read_text())
+    assert (manifest["width"], manifest["height"]) == (80, 60)  # landscape, as the rig's 320 x 240
+    assert [f["light"] for f in manifest["frames"]] == lights and {f["status"] for f in manifest["frames"]} == {"ok"}
+
+
 def test_the_command_films_with_another_rig_and_exports(tmp_path: Path) -> None:
     rig = yaml.safe_load((ROOT / "configs" / "rig.yaml").read_text())
     rig["cameras"] = rig["cameras"][1:3]
     (tmp_path / "two_cameras.yaml").write_text(yaml.safe_dump(rig))
-    sets = [f"capture.{key}={json.dumps(value)}" for key, value in SMALL.items() if key != "render"]
-    sets += ["capture.render.edge_samples=2", "capture.render.bar_samples=1", "sequence.cycles=1",
-             "sequence.restarts=1", "sequence.random_baseline_samples=4"]
-    env = dict(os.environ, PIPELINE_WORKSPACES=str(tmp_path / "ws"), PIPELINE_PROJECT_ROOT=str(ROOT))
-    command = [sys.executable, "-m", "pipeline.cli", "hw", "export-capture", "-S", "ci", "--out",
-               str(tmp_path / "export"), "--rig", str(tmp_path / "two_cameras.yaml"), "--workers", "1"]
-    done = subprocess.run([*command, *(a for s in sets for a in ("--set", s))], cwd=ROOT, env=env,
-                          capture_output=True, text=True, timeout=300)
+    done = _export_command(tmp_path, "ci", "--rig", str(tmp_path / "two_cameras.yaml"))
     assert done.returncode == 0, done.stderr[-3000:]
     assert "2 cameras, 24 images, 12 controller log entries" in done.stdout
     info = json.loads((tmp_path / "export" / "capture.json").read_text())
