@@ -58,7 +58,8 @@ capture is imported from (stages/capture/README.md). It runs the subject's `sequ
 `capture` stages as `pipeline run -S SUBJECT --until capture` would (fresh ones are reused,
 so an existing capture costs nothing; --preset and --set apply as there), then writes the
 capture output: cameras/<cam>/000000.exr... (the camera's images in arrival order, float EXR)
-with timestamps.json, controller_log.json, capture.json, scans/ and calib/. Files are
+with timestamps.json, controller_log.json, capture.json, rig.yaml (the rig it was filmed
+with), scans/ and calib/. Files are
 hard-linked from the workspace (copied across file systems). --rig films with another rig
 file instead (configs/rig.yaml's form; keys it lacks come from configs/rig.yaml): the
 subject's workspace then holds that capture until the next plain `pipeline run`.
@@ -170,12 +171,14 @@ def _export_capture(args: argparse.Namespace) -> int:
     sets = [*args.sets, *(_rig_sets(args.rig) if args.rig else [])]
     options = RunOptions(until="capture", workers=args.workers, preset=args.preset, sets=sets,
                          workspace_root=args.workspace_root)
+    runner = Runner(project, ws, options)
     try:
-        outcomes = Runner(project, ws, options).run()
+        outcomes = runner.run()
     finally:
         project.save_cache()
     ref = ws.read_ref("capture")
-    summary = export_capture(ws.object_path(ref.outputs["out"]), args.out)
+    rig = runner.params["capture"].canonical["rig"]  # what the capture was filmed with
+    summary = export_capture(ws.object_path(ref.outputs["out"]), args.out, rig=rig)
     ran = ", ".join(o.stage for o in outcomes if o.outcome == "ran") or "none (the capture was fresh)"
     print(f"{summary.folder}: {summary.cameras} cameras, {summary.images} images, {summary.log_entries} "
           f"controller log entries, {summary.calibration_files} calibration files (stages run: {ran})")

@@ -1,6 +1,7 @@
 """Validate a capture folder against the import layout (``stages.capture.layout``) before anything runs.
 
-``scan_folder(root)`` reads everything but the pixels: ``capture.json``, the controller's log,
+``scan_folder(root)`` reads everything but the pixels: ``capture.json``, the studio's rig file
+(``rig.yaml``, optional), the controller's log,
 the camera folders, their time stamps, and where every file really lives (a symbolic link may
 not lead out of the folder). ``check_images(scan)`` opens every image: readable, float
 (HALF or FLOAT channels) and one size. ``check_capture(root)`` is both: a list of ``Problem``,
@@ -56,6 +57,8 @@ class FolderScan:
     Attributes:
         folder: the capture folder (its root resolved).
         info: ``capture.json`` when it is valid, else None.
+        rig: what ``rig.yaml`` says when it is present and valid: ``cameras`` (names in camera-id
+            order), ``bars`` (how many, or None), ``fps`` and ``size`` ((width, height) or None).
         entries: the controller log's entries when valid, else None.
         images: per camera folder (sorted names), its images in arrival order.
         timestamps: per camera with a valid ``timestamps.json``, one time (s) per image.
@@ -65,6 +68,7 @@ class FolderScan:
 
     folder: CaptureFolder
     info: dict[str, Any] | None = None
+    rig: dict[str, Any] | None = None
     entries: list[dict[str, Any]] | None = None
     images: dict[str, list[Path]] = field(default_factory=dict)
     timestamps: dict[str, list[float]] = field(default_factory=dict)
@@ -147,8 +151,62 @@ def _check_info(scan: FolderScan) -> None:
         scan.info = info
 
 
+def _check_rig(scan: FolderScan) -> None:
+    """``rig.yaml``: the form of configs/rig.yaml (cameras as names or full entries); checked against capture.json."""
+    import yaml
+
+    path = scan.folder.rig_path
+    if not path.is_file() or scan.escapes(path):
+        return
+    try:
+        rig = yaml.safe_load(path.read_text())
+    except (OSError, yaml.YAMLError) as err:
+        scan.report(path, f"not valid YAML ({err}); fix it or write it again")
+        return
+    if not isinstance(rig, dict):
+        scan.report(path, "must be a mapping with 'cameras' (names, in camera-id order), e.g. 'cameras: [cam00, cam01]'")
+        return
+    bad = len(scan.problems)
+    cameras = rig.get("cameras")
+    names = [c.get("name") if isinstance(c, dict) else c for c in cameras] if isinstance(cameras, list) else None
+    if not names or not all(isinstance(n, str) and n for n in names) or len(set(names)) != len(names):
+        scan.report(path, "'cameras' must list the cameras once each, by name or as entries with a 'name' "
+                          f"(as in configs/rig.yaml), got {cameras!r}")
+    bars = rig.get("bars")
+    if bars is not None and (not isinstance(bars, list) or not bars or any(
+            not isinstance(b, dict) or b.get("id") != i for i, b in enumerate(bars))):
+        scan.report(path, "'bars' must list the LED bars with ids 0..N-1 in order, e.g. "
+                          "[{id: 0, center_m: [x, y, z]}, ...] (nominal positions, metres)")
+    fps = rig.get("fps")
+    if fps is not None and (isinstance(fps, bool) or not isinstance(fps, (int, float)) or not fps > 0):
+        scan.report(path, f"'fps' must be a positive number, got {fps!r}")
+    width, height = rig.get("width_px"), rig.get("height_px")
+    if (width is None) != (height is None) or (width is not None and not (_is_count(width) and _is_count(height)
+                                                                          and width > 0 and height > 0)):
+        scan.report(path, f"'width_px' and 'height_px' must both be positive integers, got {width!r}, {height!r}")
+    if len(scan.problems) > bad:
+        return
+    scan.rig = {"cameras": names, "bars": len(bars) if bars else None, "fps": fps,
+                "size": (width, height) if width is not None else None}
+    info = scan.info
+    if info is None:
+        return
+    for key, rig_value in (("fps", fps), ("bars", scan.rig["bars"])):
+        if rig_value is not None and key in info and float(info[key]) != float(rig_value):
+            scan.report(path, f"'{key}' is {rig_value:g}, capture.json says {info[key]:g}: make them agree")
+    if info.get("cameras") and info["cameras"] != names:
+        scan.report(path, f"'cameras' ({', '.join(names)}) differ from capture.json's ({', '.join(info['cameras'])}): "
+                          "make them agree")
+
+
 def _entries_of(raw: Any) -> Any:
     return raw.get("entries") if isinstance(raw, dict) else raw
+
+
+def bar_count(scan: FolderScan) -> int:
+    """The capture's LED bars: capture.json's 'bars', else rig.yaml's, else the default rig's 32."""
+    rig_bars = scan.rig["bars"] if scan.rig else None
+    return int((scan.info or {}).get("bars") or rig_bars or 32)
 
 
 def _check_log(scan: FolderScan) -> None:
@@ -161,7 +219,7 @@ def _check_log(scan: FolderScan) -> None:
         scan.report(path, 'expected {"entries": [{"light": "F", "time_us": 0}, ...]} (or a bare list) '
                           f"with one entry per trigger pulse ({_LAYOUT_DOC})")
         return
-    bars = int(scan.info.get("bars", 32)) if scan.info else None
+    bars = bar_count(scan) if scan.info else None
     bad: list[str] = []
     for k, entry in enumerate(entries):
         if not isinstance(entry, dict) or "light" not in entry or "time_us" not in entry:
@@ -237,14 +295,17 @@ def _check_cameras(scan: FolderScan) -> None:
         return
     present = folder.camera_names()
     listed = scan.info.get("cameras") if scan.info else None
+    source = "capture.json"
+    if not listed and scan.rig:
+        listed, source = scan.rig["cameras"], "rig.yaml"
     if listed:
         for cam in listed:
             if cam not in present:
-                scan.report(folder.camera_dir(cam), "missing: capture.json lists this camera; copy its images "
+                scan.report(folder.camera_dir(cam), f"missing: {source} lists this camera; copy its images "
                                                     "there, or drop it from 'cameras'")
         for cam in present:
             if cam not in listed:
-                scan.report(folder.camera_dir(cam), f"not a camera of capture.json's 'cameras' "
+                scan.report(folder.camera_dir(cam), f"not a camera of {source}'s 'cameras' "
                                                     f"({', '.join(listed)}): add it there, or move the folder out")
     if not present:
         scan.report(folder.cameras_dir, "no camera folders; put each camera's images in cameras/<camera name>/")
@@ -305,6 +366,7 @@ def scan_folder(root: str | Path) -> FolderScan:
         scan.report(scan.folder.root, f"not a folder; give a capture folder ({_LAYOUT_DOC})")
         return scan
     _check_info(scan)
+    _check_rig(scan)
     _check_log(scan)
     _check_cameras(scan)
     _check_extras(scan)
@@ -353,6 +415,16 @@ def image_size_problem(scan: FolderScan, path: Path, shape: tuple[int, ...],
     return True
 
 
+def rig_aspect_problem(scan: FolderScan, path: Path, shape: tuple[int, ...]) -> bool:
+    """Report the capture's first image when its shape is not the rig's (at any scale); returns whether it did."""
+    size = scan.rig["size"] if scan.rig else None
+    if size is None or abs(shape[1] * size[1] - shape[0] * size[0]) <= 0.01 * shape[0] * size[0]:
+        return False
+    scan.report(path, f"image is {shape[1]}x{shape[0]}, rig.yaml says the sensors are {size[0]}x{size[1]} "
+                      "(another aspect ratio): fix width_px/height_px there, or export the images uncropped")
+    return True
+
+
 def check_images(scan: FolderScan) -> None:
     """Open every image of the scan: readable, float, one size; problems go to ``scan.problems``."""
     first: tuple[Path, tuple[int, ...]] | None = None
@@ -365,6 +437,7 @@ def check_images(scan: FolderScan) -> None:
                 continue
             if first is None:
                 first = (path, shape)
+                rig_aspect_problem(scan, path, shape)
             else:
                 image_size_problem(scan, path, shape, first)
 

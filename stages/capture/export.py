@@ -4,7 +4,8 @@ What a studio would deliver from the same shoot: each camera's images in arrival
 (``cameras/<cam>/000000.exr``, ...: the camera's labelled frames in trigger order, so a frame
 the camera lost is simply absent), the camera's time stamp of each image (its trigger's time,
 on the controller's clock), the controller's log, ``capture.json`` (subject, fps, bars, the
-cameras, the takes), the actor's scans and the calibration takes (``calib/``). The ground truth
+cameras, the takes), the actor's scans and the calibration takes (``calib/``), and the rig it was filmed with (``rig.yaml``, in the form of
+``configs/rig.yaml``: a virtual subject can name it with ``rig:``). The ground truth
 (``capture.truth``) stays behind: a real capture has none.
 
 Files are hard-linked where the file system allows (a copy otherwise), so an export costs no
@@ -17,8 +18,10 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any, Mapping
 
 from pipeline.errors import InputError
+from scene.rig import RigConfig
 from stages.capture.layout import CaptureFolder, link_or_copy
 from stages.capture.output import CaptureOutput
 
@@ -64,8 +67,22 @@ def _link_tree(src: Path, dst: Path) -> int:
     return count
 
 
-def export_capture(capture_dir: Path, dest: Path) -> ExportSummary:
-    """Write the capture output at ``capture_dir`` as an import-layout folder at ``dest`` (new or empty)."""
+def _write_rig(folder: CaptureFolder, rig: Mapping[str, Any]) -> None:
+    import yaml
+
+    header = ("# The rig this capture was filmed with (the form of configs/rig.yaml). The virtual studio's\n"
+              "# design is exact; a real studio's rig file holds its nominal design. Checked against the\n"
+              "# folder by `pipeline check-capture`.\n")
+    plain = json.loads(json.dumps(dict(rig)))
+    ordered = {key: plain[key] for key in RigConfig.model_fields if key in plain}  # as configs/rig.yaml reads
+    folder.rig_path.write_text(header + yaml.safe_dump(ordered, sort_keys=False, default_flow_style=None, width=200))
+
+
+def export_capture(capture_dir: Path, dest: Path, rig: Mapping[str, Any] | None = None) -> ExportSummary:
+    """Write the capture output at ``capture_dir`` as an import-layout folder at ``dest`` (new or empty).
+
+    ``rig``: the rig the capture was filmed with (``RigConfig`` JSON form), written as ``rig.yaml``.
+    """
     capture = CaptureOutput(capture_dir)
     manifest = capture.manifest(keys=("fps", "cameras", "bars", "frames"))
     frames = capture.frames_of(manifest)
@@ -84,6 +101,8 @@ def export_capture(capture_dir: Path, dest: Path) -> ExportSummary:
     info = {"subject": manifest.get("subject"), "fps": manifest["fps"], "bars": manifest["bars"],
             "cameras": list(manifest["cameras"]), "takes": _takes(frames)}
     folder.info_path.write_text(json.dumps(info, indent=1))
+    if rig is not None:
+        _write_rig(folder, rig)
     if capture.scans_dir.is_dir():
         _link_tree(capture.scans_dir, folder.scans_dir)
     calibration_files = _link_tree(capture.calib_dir, folder.calib_dir) if capture.calib_dir.is_dir() else 0

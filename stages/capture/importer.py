@@ -16,7 +16,8 @@ from pathlib import Path
 from pipeline.errors import InputError
 from pipeline.stage import StageContext
 from scene.colour import luminance
-from stages.capture.check import FolderScan, image_size_problem, read_capture_image, scan_folder
+from stages.capture.check import (FolderScan, bar_count, image_size_problem, read_capture_image, rig_aspect_problem,
+                                  scan_folder)
 from stages.capture.layout import link_or_copy
 from stages.capture.output import CaptureOutput
 from stages.capture.placement import label_and_place
@@ -45,6 +46,8 @@ def _brightness(ctx: StageContext, scan: FolderScan) -> tuple[list[list[float]],
                     _refuse(scan)
                 if first is None:
                     first = (path, img.shape)
+                    if rig_aspect_problem(scan, path, img.shape):
+                        _refuse(scan)
                 elif image_size_problem(scan, path, img.shape, first):
                     _refuse(scan)
                 values.append(float(luminance(img[..., :3]).mean()) if img.shape[2] >= 3 else float(img.mean()))
@@ -71,7 +74,7 @@ def import_capture(ctx: StageContext, source: Path) -> dict:
     out = CaptureOutput(ctx.out)
     out.write_controller_log({"fps": fps, "entries": entries})
     manifest, metrics = label_and_place(
-        ctx, fps, cam_names, int(info.get("bars", 32)), takes, take_of, entries, brightness, n_triggers,
+        ctx, fps, cam_names, bar_count(scan), takes, take_of, entries, brightness, n_triggers,
         received=lambda cam, r: scan.images[cam][r], place=link_or_copy, frame_times=frame_times)
     manifest.update(subject=str(info.get("subject", ctx.subject)), width=width, height=height)
     out.write_manifest(manifest)

@@ -3,6 +3,7 @@
 ``CaptureFolder(root)``::
 
     capture.json                    subject, fps, bars, cameras (optional), takes (optional)
+    rig.yaml                        optional: the studio's rig (camera names, nominal bar positions, ...)
     controller_log.json             the LED controller's log, {"entries": [...]} or a bare list
     cameras/<cam>/*.exr             each camera's images in arrival order (sorted by file name)
     cameras/<cam>/timestamps.json   optional: the camera's time stamp of each image, seconds
@@ -19,6 +20,7 @@ import shutil
 from pathlib import Path
 
 _INFO = "capture.json"
+_RIG = "rig.yaml"
 _CONTROLLER_LOG = "controller_log.json"
 _CAMERAS = "cameras"
 _TIMESTAMPS = "timestamps.json"
@@ -36,6 +38,10 @@ class CaptureFolder:
     @property
     def info_path(self) -> Path:
         return self.root / _INFO
+
+    @property
+    def rig_path(self) -> Path:
+        return self.root / _RIG
 
     @property
     def log_path(self) -> Path:

@@ -115,6 +115,32 @@ def test_links_out_of_the_folder_and_bad_json_block_the_import(tmp_path: Path) -
         run_stage_for_test(CAPTURE, tmp_path / "w", params={"source": str(root)})
 
 
+def test_the_rig_file_is_checked_against_the_folder(tmp_path: Path) -> None:
+    root = _folder(tmp_path / "cap")
+    info = json.loads((root / "capture.json").read_text())
+    del info["cameras"], info["bars"]
+    (root / "capture.json").write_text(json.dumps(info))
+    rig = {"width_px": 5, "height_px": 6, "fps": FPS, "cameras": [{"name": "camA", "focal_px": 9.0}, "camB"],
+           "bars": [{"id": i} for i in range(10)]}
+    (root / "rig.yaml").write_text(json.dumps(rig))  # JSON is YAML
+    assert check_capture(root) == []
+    rig.update(cameras=["camA", "camC"], fps=30, width_px=6, height_px=5, bars=[{"id": i} for i in range(5)])
+    (root / "rig.yaml").write_text(json.dumps(rig))
+    lines = _lines(root)
+    expected = {
+        "rig.yaml: 'fps' is 30, capture.json says 24: make them agree",
+        "cameras/camC: missing: rig.yaml lists this camera",
+        "cameras/camB: not a camera of rig.yaml's 'cameras' (camA, camC)",
+        "controller_log.json: entry 2: 'light' must be \"F\" or a bar id 0..4, got 7",
+        "cameras/camA/000000.exr: image is 5x6, rig.yaml says the sensors are 6x5 (another aspect ratio)",
+    }
+    for start in expected:
+        assert sum(line.startswith(start) for line in lines) == 1, (start, lines)
+    assert len(lines) == len(expected), lines
+    (root / "rig.yaml").write_text("cameras: camA\n")
+    assert [line.split(":")[0] for line in _lines(root)] == ["rig.yaml"]
+
+
 def test_usage_and_a_missing_folder(tmp_path: Path, capsys) -> None:
     assert check_main([str(tmp_path / "nope")]) == 1
     assert "not a folder" in capsys.readouterr().out

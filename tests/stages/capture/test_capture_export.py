@@ -14,7 +14,7 @@ import yaml
 
 from pipeline.errors import InputError
 from pipeline.testing import run_stage_for_test
-from scene.rig import default_rig
+from scene.rig import default_rig, load_rig
 from stages.capture.check import check_capture
 from stages.capture.check_cli import main as check_main
 from stages.capture.export import export_capture
@@ -99,6 +99,8 @@ def test_a_subject_with_its_own_rig_exports_checks_and_imports(tmp_path: Path) -
     assert (info["fps"], info["bars"], len(info["cameras"])) == (30.0, 20, 6)
     lights = [e["light"] for e in json.loads((folder / "controller_log.json").read_text())["entries"]]
     assert [i for i, light in enumerate(lights) if light == "F"] == [0, 4, 8]
+    # The rig travels with the capture, in the form a subject's rig: line reads.
+    assert load_rig(folder / "rig.yaml") == load_rig(ROOT / "configs" / "rigs" / "six_landscape.yaml")
     assert check_main([str(folder)]) == 0
     imported = run_stage_for_test(CAPTURE, tmp_path / "w", params={"source": str(folder)})
     manifest = json.loads((imported / "manifest.json").read_text())
