@@ -162,8 +162,9 @@ def _export_capture(args: argparse.Namespace) -> int:
     from pipeline.project import Project, find_project_root
     from pipeline.runner import RunOptions, Runner
     from pipeline.workspace import Workspace, workspace_root
-    from stages.capture.export import export_capture
+    from stages.capture.export import check_destination, export_capture
 
+    check_destination(args.out)  # before filming, not after
     root = find_project_root()
     ws_root = workspace_root(root, args.workspace_root)
     project = Project(root, cache_dir=ws_root / ".pipeline-cache")

@@ -48,9 +48,14 @@ def _takes(frames: list[dict]) -> list[dict]:
     return takes
 
 
-def _empty_destination(dest: Path) -> CaptureFolder:
+def check_destination(dest: Path) -> None:
+    """``InputError`` unless ``dest`` is new or an empty folder (callers check before a long render)."""
     if dest.exists() and (not dest.is_dir() or any(dest.iterdir())):
         raise InputError(f"{dest}: exists and is not an empty folder; give a new or empty folder to export into")
+
+
+def _empty_destination(dest: Path) -> CaptureFolder:
+    check_destination(dest)
     dest.mkdir(parents=True, exist_ok=True)
     return CaptureFolder(dest.resolve())
 

@@ -118,3 +118,5 @@ def test_the_command_films_with_another_rig_and_exports(tmp_path: Path) -> None:
     info = json.loads((tmp_path / "export" / "capture.json").read_text())
     assert info["cameras"] == ["cam01", "cam02"] and info["subject"] == "ci" and info["fps"] == 24.0
     assert check_main([str(tmp_path / "export")]) == 0
+    again = _export_command(tmp_path, "ci", "--rig", str(tmp_path / "two_cameras.yaml"))
+    assert again.returncode == 1 and "not an empty folder" in again.stderr and "capture" not in again.stdout
