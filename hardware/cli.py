@@ -57,12 +57,15 @@ Write a virtual-studio capture, with its calibration takes and scans, in the lay
 capture is imported from (stages/capture/README.md). It runs the subject's `sequence` and
 `capture` stages as `pipeline run -S SUBJECT --until capture` would (fresh ones are reused,
 so an existing capture costs nothing; --preset and --set apply as there), then writes the
-capture output: cameras/<cam>/000000.exr... (the camera's images in arrival order, float EXR)
-with timestamps.json, controller_log.json, capture.json, rig.yaml (the rig it was filmed
-with), scans/ and calib/. Files are
-hard-linked from the workspace (copied across file systems). --rig films with another rig
-file instead (configs/rig.yaml's form; keys it lacks come from configs/rig.yaml): the
-subject's workspace then holds that capture until the next plain `pipeline run`.
+capture output: cameras/<cam>/000000.exr... (each camera's images in arrival order, float
+EXR) with timestamps.json, controller_log.json, capture.json, rig.yaml (the rig it was
+filmed with), scans/ and calib/. Files are hard-linked from the workspace (copied across
+file systems); the ground truth stays behind.
+
+--rig films with another rig file (the form of configs/rig.yaml; keys it lacks come from
+the subject's rig): the subject's workspace then holds that capture until its next plain
+`pipeline run`. A subject that always uses another rig names it in its file (rig: PATH).
+
 Check the result with `pipeline check-capture DIR`; import it with
 `pipeline run -S NAME --set capture.source=DIR`."""
 
