@@ -5,9 +5,11 @@
     pipeline hw status --port /dev/ttyUSB0
     pipeline hw log --port /dev/ttyUSB0
     pipeline hw emulate [--bars 32] [--seconds 0]
+    pipeline hw export-capture -S alice --out /data/alice-export [--rig my_rig.yaml]
 
 ``emulate`` starts an emulated controller on a pty and prints its port, so the other
-commands (or any serial terminal) can be tried without a rig.
+commands (or any serial terminal) can be tried without a rig. ``export-capture`` writes a
+virtual-studio capture in the layout a real capture is imported from (``stages.capture.export``).
 """
 
 from __future__ import annotations
@@ -20,6 +22,7 @@ from pathlib import Path
 
 from hardware.led import ControllerError, LedController, LedEmulator
 from hardware.led.protocol import light_token
+from pipeline.errors import PipelineError
 
 
 def _add_port_args(parser: argparse.ArgumentParser) -> None:
@@ -45,7 +48,40 @@ def _parser() -> argparse.ArgumentParser:
     emulate = commands.add_parser("emulate", help="serve an emulated controller on a pty and print its port")
     emulate.add_argument("--bars", type=int, default=32, help="LED bars on the emulated board")
     emulate.add_argument("--seconds", type=float, default=0.0, help="stop after this long (0: until Ctrl-C)")
+    _add_export_args(commands)
     return parser
+
+
+_EXPORT_HELP = """\
+Write a virtual-studio capture, with its calibration takes and scans, in the layout a real
+capture is imported from (stages/capture/README.md). It runs the subject's `sequence` and
+`capture` stages as `pipeline run -S SUBJECT --until capture` would (fresh ones are reused,
+so an existing capture costs nothing; --preset and --set apply as there), then writes the
+capture output: cameras/<cam>/000000.exr... (each camera's images in arrival order, float
+EXR) with timestamps.json, controller_log.json, capture.json, rig.yaml (the rig it was
+filmed with), scans/ and calib/. Files are hard-linked from the workspace (copied across
+file systems); the ground truth stays behind.
+
+--rig films with another rig file (the form of configs/rig.yaml; keys it lacks come from
+the subject's rig): the subject's workspace then holds that capture until its next plain
+`pipeline run`. A subject that always uses another rig names it in its file (rig: PATH).
+
+Check the result with `pipeline check-capture DIR`; import it with
+`pipeline run -S NAME --set capture.source=DIR`."""
+
+
+def _add_export_args(commands: argparse._SubParsersAction) -> None:
+    export = commands.add_parser("export-capture", help="write a virtual-studio capture in the import layout",
+                                 description=_EXPORT_HELP, formatter_class=argparse.RawDescriptionHelpFormatter)
+    export.add_argument("-S", "--subject", required=True, help="subject name (configs/subjects/<S>.yaml)")
+    export.add_argument("--out", required=True, type=Path, help="folder to write (new or empty)")
+    export.add_argument("--rig", type=Path, default=None, help="rig YAML to film with instead of configs/rig.yaml")
+    export.add_argument("--preset", default=None, help="preset to start from instead of the subject's own")
+    export.add_argument("--set", dest="sets", action="append", default=[], metavar="STAGE.KEY=VALUE",
+                        help="override a param of sequence or capture (value parsed as YAML); repeatable")
+    export.add_argument("--workers", type=int, default=None, help="worker processes for rendering (default: all cores)")
+    export.add_argument("--workspace-root", default=None,
+                        help="folder holding the workspaces (default: $PIPELINE_WORKSPACES or <project>/workspaces)")
 
 
 def _load_sequence(path: Path) -> tuple[list, int, str | None]:
@@ -114,15 +150,58 @@ def _emulate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _rig_sets(path: Path) -> list[str]:
+    """``--set`` expressions that give the sequence and capture stages the rig in ``path``."""
+    from pipeline.yamlio import read_yaml_mapping
+
+    if not path.is_file():
+        raise ValueError(f"--rig {path}: no such file; give a rig YAML in the form of configs/rig.yaml")
+    rig = json.dumps(read_yaml_mapping(path, str(path)))  # JSON is YAML: --set parses it back
+    return [f"sequence.rig={rig}", f"capture.rig={rig}"]
+
+
+def _export_capture(args: argparse.Namespace) -> int:
+    from pipeline.config import check_subject_name
+    from pipeline.project import Project, find_project_root
+    from pipeline.runner import RunOptions, Runner
+    from pipeline.workspace import Workspace, workspace_root
+    from stages.capture.export import check_destination, export_capture
+
+    check_destination(args.out)  # before filming, not after
+    root = find_project_root()
+    ws_root = workspace_root(root, args.workspace_root)
+    project = Project(root, cache_dir=ws_root / ".pipeline-cache")
+    ws = Workspace(ws_root, check_subject_name(args.subject))
+    sets = [*args.sets, *(_rig_sets(args.rig) if args.rig else [])]
+    options = RunOptions(until="capture", workers=args.workers, preset=args.preset, sets=sets,
+                         workspace_root=args.workspace_root)
+    runner = Runner(project, ws, options)
+    try:
+        outcomes = runner.run()
+    finally:
+        project.save_cache()
+    ref = ws.read_ref("capture")
+    rig = runner.params["capture"].canonical["rig"]  # what the capture was filmed with
+    summary = export_capture(ws.object_path(ref.outputs["out"]), args.out, rig=rig)
+    ran = ", ".join(o.stage for o in outcomes if o.outcome == "ran") or "none (the capture was fresh)"
+    print(f"{summary.folder}: {summary.cameras} cameras, {summary.images} images, {summary.log_entries} "
+          f"controller log entries, {summary.calibration_files} calibration files (stages run: {ran})")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``pipeline hw``; returns the exit code (0 ok, 1 device error, 2 usage)."""
     try:
         args = _parser().parse_args(argv)
     except SystemExit as exit_:  # argparse exits on --help and on bad usage; return its code
         return int(exit_.code or 0)
-    handlers = {"ping": _ping, "upload": _upload, "status": _status, "log": _log, "emulate": _emulate}
+    handlers = {"ping": _ping, "upload": _upload, "status": _status, "log": _log, "emulate": _emulate,
+                "export-capture": _export_capture}
     try:
         return handlers[args.command](args)
+    except PipelineError as err:  # export-capture: a bad subject, config or capture
+        print(f"error: {err}", file=sys.stderr)
+        return err.exit_code
     except ControllerError as err:
         print(f"error: {err}", file=sys.stderr)
         return 1

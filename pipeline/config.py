@@ -1,7 +1,7 @@
 """Configuration: the stage list, presets, subjects, the rig and ``--set`` overrides.
 
-Effective params of a stage = params class defaults <- ``configs/rig.yaml`` (as the ``rig``
-field, for stages that declare one) <- ``configs/presets/<preset>.yaml`` <- 
+Effective params of a stage = params class defaults <- ``configs/rig.yaml``, or the rig file
+the subject names with ``rig: <path>`` (as the ``rig`` field, for stages that declare one) <- ``configs/presets/<preset>.yaml`` <- 
 ``configs/subjects/<subject>.yaml`` <- ``--set stage.key=value``; validated into the
 stage's frozen params class. A bad value raises ``ConfigError`` naming the file, the key
 path and what is allowed.
@@ -172,6 +172,7 @@ class SubjectConfig:
     preset: str
     layers: tuple[Layer, ...]
     rig: dict[str, Any] | None
+    rig_label: str = "configs/rig.yaml"  # the file ``rig`` came from, as error messages name it
 
 
 def check_subject_name(subject: str) -> str:
@@ -239,7 +240,7 @@ def load_subject_config(root: Path, subject: str, known_stages: list[str], *,
     layers = [
         Layer(preset_label, _check_sections(read_yaml_mapping(preset_path, preset_label),
                                             preset_label, known_stages, set())),
-        Layer(subject_label, _check_sections(subject_data, subject_label, known_stages, {"preset"})),
+        Layer(subject_label, _check_sections(subject_data, subject_label, known_stages, {"preset", "rig"})),
     ]
     for expr in sets:
         stage, path, value = parse_set(expr, known_stages)
@@ -247,9 +248,27 @@ def load_subject_config(root: Path, subject: str, known_stages: list[str], *,
         for key in reversed(path):
             nested = {key: nested}
         layers.append(Layer(f"--set {expr}", {stage: nested}))
-    rig_path = root / "configs" / "rig.yaml"
-    rig = read_yaml_mapping(rig_path, "configs/rig.yaml") if rig_path.is_file() else None
-    return SubjectConfig(subject=subject, preset=preset_name, layers=tuple(layers), rig=rig)
+    rig_label, rig_path = _rig_file(root, subject_data.get("rig"), subject_label)
+    rig = read_yaml_mapping(rig_path, rig_label) if rig_path.is_file() else None
+    return SubjectConfig(subject=subject, preset=preset_name, layers=tuple(layers), rig=rig, rig_label=rig_label)
+
+
+def _rig_file(root: Path, named: Any, subject_label: str) -> tuple[str, Path]:
+    """The rig file of a subject: the one its ``rig:`` names (project-relative or absolute), else configs/rig.yaml.
+
+    A subject's own rig replaces configs/rig.yaml as a whole (a studio's rig shares nothing with
+    the default one), so a subject with another rig needs no edit to a shared file.
+    """
+    if named is None:
+        return "configs/rig.yaml", root / "configs" / "rig.yaml"
+    if not isinstance(named, str) or not named.strip():
+        raise ConfigError(f"{subject_label}: 'rig' must be the path of a rig file, e.g. 'rig: configs/rigs/studio_b.yaml'")
+    path = Path(named).expanduser()
+    path = path if path.is_absolute() else root / path
+    if not path.is_file():
+        raise ConfigError(f"{subject_label}: rig {named}: no such file ({path}); give a rig YAML in the form of "
+                          "configs/rig.yaml, relative to the project folder or absolute")
+    return named, path
 
 
 def _deep_merge(base: dict, update: Mapping, origin: dict, label: str, prefix: tuple) -> dict:
@@ -300,7 +319,7 @@ def merge_layers(name: str, has_rig: bool, subject_config: SubjectConfig) -> tup
     origin: dict[tuple, str] = {}
     merged: dict[str, Any] = {}
     if subject_config.rig is not None and has_rig:
-        merged = _deep_merge(merged, {"rig": subject_config.rig}, origin, "configs/rig.yaml", ())
+        merged = _deep_merge(merged, {"rig": subject_config.rig}, origin, subject_config.rig_label, ())
     for layer in subject_config.layers:
         section = layer.sections.get(name)
         if section:

@@ -1,102 +1,71 @@
 """Import a real capture folder (layout: ``stages/capture/README.md``) without copying images twice.
 
+The folder is checked first by ``stages.capture.check`` (the checks ``pipeline check-capture``
+runs): any problem that blocks the import is raised at once, all of them in one error, each
+naming its file and what to do. Among them, every path must stay inside the source folder:
+symbolic links that lead outside it are refused.
+
 Images are hard-linked into the output (one copy on disk; a copy is made only when the
-workspace is on another file system). Every path is checked to stay inside the source
-folder: symbolic links or names that lead outside it are refused.
+workspace is on another file system).
 """
 
 from __future__ import annotations
 
-import json
-import os
-import shutil
 from pathlib import Path
-
 
 from pipeline.errors import InputError
 from pipeline.stage import StageContext
-from stages.capture.placement import label_and_place
 from scene.colour import luminance
-from scene.image_io import read_exr
+from stages.capture.check import (FolderScan, bar_count, image_size_problem, read_capture_image, rig_aspect_problem,
+                                  scan_folder)
+from stages.capture.layout import link_or_copy
 from stages.capture.output import CaptureOutput
+from stages.capture.placement import label_and_place
+
+def _refuse(scan: FolderScan) -> None:
+    """Raise one ``InputError`` listing every problem that blocks the import (none: return)."""
+    blocking = scan.blocking
+    if blocking:
+        lines = "\n  ".join(p.line() for p in blocking)
+        raise InputError(f"capture folder {scan.folder.root} cannot be imported ({len(blocking)} problem(s); "
+                         f"`pipeline check-capture {scan.folder.root}` lists them all):\n  {lines}")
 
 
-def _inside(root: Path, path: Path) -> Path:
-    """``path`` resolved; ``InputError`` if it leaves ``root`` (symlink or ``..``)."""
-    resolved = path.resolve()
-    if resolved != root and root not in resolved.parents:
-        raise InputError(f"{path}: leads outside the capture folder {root} (symbolic link or '..'); "
-                         "copy the file into the folder instead")
-    return resolved
-
-
-def link_or_copy(src: Path, dst: Path) -> None:
-    """Hard-link ``src`` to ``dst``; copy once when linking is impossible (another file system)."""
-    try:
-        os.link(src, dst)
-    except OSError:
-        shutil.copy2(src, dst)
-
-
-def _read_json(root: Path, name: str) -> object:
-    path = _inside(root, root / name)
-    try:
-        return json.loads(path.read_text())
-    except (OSError, ValueError) as err:
-        raise InputError(f"{path}: missing or not valid JSON ({err}); see stages/capture/README.md") from err
+def _brightness(ctx: StageContext, scan: FolderScan) -> tuple[list[list[float]], tuple[int, int]]:
+    """Per camera, the mean luminance of each image in arrival order; and the images' (height, width)."""
+    brightness: list[list[float]] = []
+    first = None
+    with ctx.progress(len(scan.images), "cameras") as progress:
+        for paths in scan.images.values():
+            values = []
+            for path in paths:
+                try:
+                    img = read_capture_image(path)
+                except ValueError as err:
+                    scan.report(path, str(err))
+                    _refuse(scan)
+                if first is None:
+                    first = (path, img.shape)
+                    if rig_aspect_problem(scan, path, img.shape):
+                        _refuse(scan)
+                elif image_size_problem(scan, path, img.shape, first):
+                    _refuse(scan)
+                values.append(float(luminance(img[..., :3]).mean()) if img.shape[2] >= 3 else float(img.mean()))
+            brightness.append(values)
+            progress.advance(1)
+    return brightness, first[1][:2]
 
 
 def import_capture(ctx: StageContext, source: Path) -> dict:
     """Label and link a real capture into ``ctx.out``; returns ``{"manifest", "metrics"}``."""
-    root = Path(source).resolve()
-    info = _read_json(root, "capture.json")
-    log_raw = _read_json(root, "controller_log.json")
-    if not isinstance(info, dict) or "fps" not in info:
-        raise InputError(f"{root / 'capture.json'}: needs at least 'fps' (see stages/capture/README.md)")
-    entries = log_raw.get("entries") if isinstance(log_raw, dict) else log_raw
-    if not isinstance(entries, list) or not all(isinstance(e, dict) and "light" in e and "time_us" in e
-                                                for e in entries):
-        raise InputError(f"{root / 'controller_log.json'}: expected a list of entries with 'light' and "
-                         "'time_us' (see stages/capture/README.md)")
+    scan = scan_folder(source)
+    _refuse(scan)
+    info, entries = scan.info, scan.entries
+    cam_names = list(scan.images)
+    brightness, (height, width) = _brightness(ctx, scan)
     fps = float(info["fps"])
-    cam_root = _inside(root, root / "cameras")
-    if not cam_root.is_dir():
-        raise InputError(f"{root}: no 'cameras' folder; put each camera's images in cameras/<cam>/")
-    cam_names = sorted(p.name for p in cam_root.iterdir() if p.is_dir())
-    if not cam_names:
-        raise InputError(f"{cam_root}: no camera folders")
-    files: dict[str, list[Path]] = {}
-    frame_times: list[list[float]] | None = []
-    brightness: list[list[float]] = []
-    width = height = None
-    with ctx.progress(len(cam_names), "cameras") as progress:
-        for cam in cam_names:
-            paths = sorted(_inside(root, p) for p in (cam_root / cam).glob("*.exr"))
-            if not paths:
-                raise InputError(f"{cam_root / cam}: no .exr images")
-            files[cam] = paths
-            values = []
-            for path in paths:
-                try:
-                    img = read_exr(path)
-                except ValueError as err:
-                    raise InputError(str(err)) from err
-                if width is None:
-                    height, width = img.shape[:2]
-                elif img.shape[:2] != (height, width):
-                    raise InputError(f"{path}: image is {img.shape[1]}x{img.shape[0]}, the capture's first "
-                                     f"image is {width}x{height}; all images must have one size")
-                values.append(float(luminance(img[..., :3]).mean()) if img.shape[2] >= 3 else float(img.mean()))
-            brightness.append(values)
-            stamps_path = cam_root / cam / "timestamps.json"
-            if frame_times is not None and stamps_path.is_file():
-                stamps = json.loads(_inside(root, stamps_path).read_text())
-                if not isinstance(stamps, list) or len(stamps) != len(paths):
-                    raise InputError(f"{stamps_path}: expected a list of {len(paths)} times in seconds, one per image")
-                frame_times.append([float(t) for t in stamps])
-            else:
-                frame_times = None  # time stamps are used only when every camera has them
-            progress.advance(1)
+    # Time stamps are used only when every camera has them.
+    frame_times = [scan.timestamps[c] for c in cam_names] if set(scan.timestamps) == set(cam_names) else None
 
     n_triggers = max((int(round(e["time_us"] * 1e-6 * fps)) for e in entries), default=-1) + 1
     takes_cfg = info.get("takes") or [{"name": "take", "frames": n_triggers}]
@@ -105,18 +74,15 @@ def import_capture(ctx: StageContext, source: Path) -> dict:
     out = CaptureOutput(ctx.out)
     out.write_controller_log({"fps": fps, "entries": entries})
     manifest, metrics = label_and_place(
-        out, ctx.log, ctx.subject, fps, cam_names, int(info.get("bars", 32)), takes, take_of, entries, brightness, n_triggers,
-        received=lambda cam, r: files[cam][r], place=link_or_copy, frame_times=frame_times)
+        out, ctx.log, ctx.subject, fps, cam_names, bar_count(scan), takes, take_of, entries, brightness, n_triggers,
+        received=lambda cam, r: scan.images[cam][r], place=link_or_copy, frame_times=frame_times)
     manifest.update(subject=str(info.get("subject", ctx.subject)), width=width, height=height)
     out.write_manifest(manifest)
-    for optional in (out.scans_dir, out.calib_dir):
-        src = root / optional.name
-        if src.is_dir():
-            _inside(root, src)
-            for path in sorted(src.rglob("*")):
-                if path.is_file():
-                    dst = optional / path.relative_to(src)
-                    dst.parent.mkdir(parents=True, exist_ok=True)
-                    link_or_copy(_inside(root, path), dst)
-    metrics.update(imported_images=sum(len(v) for v in files.values()))
+    for src_dir, dst_dir in ((scan.folder.scans_dir, out.scans_dir), (scan.folder.calib_dir, out.calib_dir)):
+        for path in scan.extra_files:
+            if src_dir in path.parents:
+                dst = dst_dir / path.relative_to(src_dir)
+                dst.parent.mkdir(parents=True, exist_ok=True)
+                link_or_copy(path.resolve(), dst)
+    metrics.update(imported_images=sum(len(v) for v in scan.images.values()))
     return {"manifest": manifest, "metrics": metrics}

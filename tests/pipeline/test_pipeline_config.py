@@ -58,6 +58,20 @@ def test_layers_apply_in_order(tmp_path: Path) -> None:
     assert canonical_params(params) == {"fps": 30.0, "rig": {"bars": 32}, "solver": {"kind": "adam", "steps": 7}}
 
 
+def test_a_subject_names_its_own_rig_file(tmp_path: Path) -> None:
+    root = _project(tmp_path, "", "preset: tiny\nrig: rigs/studio_b.yaml\n")
+    (root / "rigs").mkdir()
+    (root / "rigs/studio_b.yaml").write_text("bars: 20\n")
+    cfg = load_subject_config(root, "alice", ["track"])
+    assert validate_params(TRACK, cfg).rig.bars == 20  # replaces configs/rig.yaml, which stays as it is
+    (root / "rigs/studio_b.yaml").write_text("bars: many\n")
+    with pytest.raises(ConfigError, match=r"rigs/studio_b.yaml: track.rig.bars = 'many'"):
+        validate_params(TRACK, load_subject_config(root, "alice", ["track"]))
+    (root / "configs/subjects/alice.yaml").write_text("preset: tiny\nrig: rigs/nowhere.yaml\n")
+    with pytest.raises(ConfigError, match=r"configs/subjects/alice.yaml: rig rigs/nowhere.yaml: no such file"):
+        load_subject_config(root, "alice", ["track"])
+
+
 def test_errors_name_file_key_and_allowed(tmp_path: Path) -> None:
     root = _project(tmp_path, "track:\n  solver: {kind: sgd}\n", "preset: tiny\ntrack:\n  fps: fast\n")
     cfg = load_subject_config(root, "alice", ["track"])
