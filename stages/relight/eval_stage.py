@@ -15,6 +15,7 @@ Output: ``truth/<sequence>/<i:06d>.exr`` (the references), ``compare/<sequence>_
 
 from __future__ import annotations
 
+import json
 import math
 from pathlib import Path
 
@@ -27,6 +28,7 @@ from pipeline.errors import InputError
 from pipeline.stage import Stage, StageContext, StageParams
 from scene.camera import Camera
 from scene.envmap import read_envmap
+from scene.comparison_figure import ComparisonRow, write_comparison_figure
 from scene.image_io import write_exr, write_png_srgb
 from stages.capture.output import CaptureTruth
 from stages.relight.output import RelightEvalOutput, RelightOutput
@@ -68,6 +70,7 @@ def run(ctx: StageContext) -> None:
     # The relight stage drives the head with the first tracked mesh: capture frame 0.
     frame = frame_from_weights(weights_all[0])
     scores: dict[str, list[tuple[float, float]]] = {"envmap": [], "point": []}
+    rows: dict[str, list[ComparisonRow]] = {"envmap": [], "point": []}
     out.compare_dir.mkdir()
     for name, records in manifest.items():
         for rec in records[:params.frames_per_sequence]:
@@ -91,7 +94,22 @@ def run(ctx: StageContext) -> None:
                                  if (truth.alpha > 0.5).any() else 1.0, 1e-8)
             write_png_srgb(out.compare_path(name, rec["index"]),
                            np.concatenate([truth.rgb, pred * scale], axis=1), exposure=exposure)
+            what = (f"map {Path(rec['envmap']).stem} turned {rec['rotation_deg']:.0f} deg" if kind == "envmap"
+                    else "point light at (" + ", ".join(f"{v:.2f}" for v in rec["position"]) + ") m")
+            rows[kind].append(ComparisonRow(f"{what}, frame {rec['index']}", truth.rgb, {"ours": pred * scale},
+                                            truth_alpha=truth.alpha, notes={"ours": f"{value_psnr:.1f} dB"}))
             ctx.log.info("%s frame %d: PSNR %.2f dB, SSIM %.3f", name, rec["index"], value_psnr, value_ssim)
+    captions = {}
+    for kind, words in (("envmap", "Environment maps"), ("point", "Point lights")):
+        if rows[kind]:
+            h, w = rows[kind][0].truth.shape[:2]
+            write_comparison_figure(out.figure_path(kind), rows[kind], f"{words}: the studio's ray-traced truth "
+                                    f"against the relit head ({w} x {h} px)")
+            captions[kind] = (f"{words}: the studio's ray-traced ground truth of the same subject, light, camera and "
+                              f"expression, the relit head (scaled to the truth's exposure; PSNR above each) and its "
+                              f"per-pixel error. Rendered at the relight stage's {w} x {h} px"
+                              + (", drawn larger" if h < 256 else ""))
+    out.captions_path.write_text(json.dumps(captions, indent=1))
     for kind, key in (("envmap", "envmap"), ("point", "pointlight")):
         if scores[kind]:
             ctx.metrics[f"{key}_psnr_mean"] = float(np.mean([s[0] for s in scores[kind]]))

@@ -100,3 +100,21 @@ class RelightEvalOutput(StageOutput):
 
     def compare_path(self, name: str, index: int) -> Path:
         return self.file(_EVAL_COMPARE, f"{name}_{int(index)}.png")
+
+    def figure_path(self, kind: str) -> Path:
+        """The comparison figure of one kind of light (``envmap``, ``point``): truth | relit | error."""
+        return self.file(_EVAL_COMPARE, f"figure_{kind}.png")
+
+    @property
+    def captions_path(self) -> Path:
+        return self.file(_EVAL_COMPARE, "captions.json")
+
+    def figures(self) -> list[tuple[Path, str]]:
+        """(comparison figure, caption in words) per kind of light; empty when none was written."""
+        import json
+
+        try:
+            captions = json.loads(self.captions_path.read_text())
+        except (OSError, ValueError):
+            return []
+        return [(self.figure_path(kind), str(c)) for kind, c in captions.items() if self.figure_path(kind).is_file()]

@@ -22,6 +22,8 @@ th:first-child, td:first-child { text-align: left; }
 td.pass { background: #e3f6e3; } td.fail { background: #fbe3e3; } td.na { color: #999; }
 figure { display: inline-block; margin: .5em; vertical-align: top; }
 figure img { max-width: 560px; border: 1px solid #ddd; }
+figure.wide { display: block; }
+figure.wide img { max-width: 100%; }
 figcaption { font-size: .85em; color: #555; }
 .note { color: #666; font-size: .9em; }
 """
@@ -83,8 +85,10 @@ class Section:
     def table(self, table: Table) -> None:
         self.parts.append(table.render())
 
-    def figure(self, png: Path, caption: str) -> None:
-        self.parts.append(f'<figure><img alt="{html.escape(caption)}" src="{png_data_uri(png)}">'
+    def figure(self, png: Path, caption: str, wide: bool = False) -> None:
+        """A picture with its caption (in words); ``wide`` shows it at its own size, not shrunk to a column."""
+        css = ' class="wide"' if wide else ""
+        self.parts.append(f'<figure{css}><img alt="{html.escape(caption)}" src="{png_data_uri(png)}">'
                           f"<figcaption>{html.escape(caption)}</figcaption></figure>")
 
 

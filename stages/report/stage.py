@@ -157,9 +157,29 @@ def _stage_section(ctx: StageContext, stage: str, evaluator: str | None, metrics
                           "expression (a weighted sum of basis images), 'voxel_sum' through the network every frame.")
         section.table(paths)
     folders = [ctx.input(stage)] + ([ctx.input(evaluator)] if evaluator else [])
-    pngs = [p for folder in folders for p in sorted(folder.glob("*.png"))][:limit]
-    for png in pngs:
-        section.figure(png, f"{png.parent.name if png.parent.name != stage else stage}: {png.stem.replace('_', ' ')}")
+    names = [stage] + ([evaluator] if evaluator else [])
+    pngs = [(name, p) for name, folder in zip(names, folders) for p in sorted(folder.glob("*.png"))][:limit]
+    for name, png in pngs:
+        # In words: the stage that drew it and the picture's name (its folder is a content digest).
+        section.figure(png, f"{name}: {png.stem.replace('_', ' ')}")
+    return section
+
+
+def _pictures_section(ctx: StageContext) -> Section | None:
+    """The paper's comparison figures: every held-out split of train, and the relit head against the studio's truth."""
+    from stages.relight.output import RelightEvalOutput
+    from stages.train.output import TrainOutput
+
+    figures = TrainOutput(ctx.input("train")).comparisons()
+    figures += RelightEvalOutput(ctx.input("relight_eval")).figures()
+    if not figures:
+        return None
+    section = Section("Pictures: held-out images and relighting against the ground truth", "pictures")
+    section.paragraph("Each row: the ground truth, each model's render, and each model's per-pixel error as a heat "
+                      "map (mean absolute error over RGB as a fraction of the ground truth's white; the colour bar "
+                      "gives the scale, shared within a figure).")
+    for png, caption in figures:
+        section.figure(png, caption, wide=True)
     return section
 
 
@@ -242,6 +262,9 @@ def run(ctx: StageContext) -> None:
     targets_section, verdicts = _targets_section(merged, charts)
     sections.append(targets_section)
     sections.append(_paper_table_section(merged["train"]))
+    pictures = _pictures_section(ctx)
+    if pictures is not None:
+        sections.append(pictures)
     bench = bench_results_folder(params)
     spread = seeds_section(bench[0], ctx.subject) if bench else None
     if spread is not None:

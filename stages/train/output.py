@@ -8,7 +8,9 @@ Files::
     tradeoffs/learning_curve.json    the same as a report trade-off series
     capacity.json                    the capacity rule's inputs and choice
     table.md                         the paper's table
-    previews/<split>_<k>.png         ground truth | ours | TRAvatar*, sRGB
+    previews/<split>_<k>.png         ground truth | ours | TRAvatar*, sRGB, at the training images' size
+    comparisons/<split>.png          ground truth | ours | TRAvatar* | their error heat maps, at the capture's size
+    comparisons/captions.json        split -> the figure's caption in words
     tensorboard/                     loss terms and held-out PSNR
 
 A missing or malformed file raises one ``InputError`` naming it and saying to rerun train.
@@ -16,6 +18,7 @@ A missing or malformed file raises one ``InputError`` naming it and saying to re
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 from typing import Any, Callable, TypeVar
 
@@ -32,6 +35,8 @@ _TRADEOFFS = "tradeoffs"
 _CURVE_TRADEOFF = "learning_curve.json"
 _TABLE = "table.md"
 _PREVIEWS = "previews"
+_COMPARISONS = "comparisons"
+_CAPTIONS = "captions.json"
 _TENSORBOARD = "tensorboard"
 
 #: The names no module outside ``stages/train`` may spell (``tests/test_output_contracts.py``);
@@ -100,6 +105,20 @@ class TrainOutput(StageOutput):
     @property
     def previews_dir(self) -> Path:
         return self.file(_PREVIEWS)
+
+    @property
+    def comparisons_dir(self) -> Path:
+        return self.file(_COMPARISONS)
+
+    def comparisons(self) -> list[tuple[Path, str]]:
+        """(figure, caption in words) of every split with a comparison figure; empty when the run wrote none."""
+        folder = self.file(_COMPARISONS)
+        try:
+            captions = json.loads((folder / _CAPTIONS).read_text())
+        except (OSError, ValueError):
+            return []
+        return [(folder / f"{split}.png", str(caption)) for split, caption in captions.items()
+                if (folder / f"{split}.png").is_file()]
 
     @property
     def tensorboard_dir(self) -> Path:

@@ -158,7 +158,8 @@ def train_in_folders(folders: TrainFolders, params: TrainParams, log: logging.Lo
         metrics["peak_memory_mb"] = _peak_memory_mb(device)
         if writer is not None:
             writer.close()
-        write_train_outputs(TrainOutput(folders.out), data, setup, heads, results, metrics, params, log)
+        write_train_outputs(TrainOutput(folders.out), data, setup, heads, results, metrics, params, log,
+                            inputs=inputs)
     if data.spilled:
         # Unlinking a mapped file is safe on POSIX; the pages go when the last mapping does.
         shutil.rmtree(folders.spill_dir(rank), ignore_errors=True)

@@ -215,8 +215,16 @@ class Renderer:
     def render_images(self, t: TrainTensors, pairs: list[tuple[int, int]], light_pos: torch.Tensor | None = None,
                       bar: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """Full images [K, H, W, 3] and opacity [K, H, W] for (frame, camera) pairs; deterministic (z = mu)."""
+        rays = [Rays(*t.image_rays(f, c), t.cam_pos[f, c], t.height, t.width) for f, c in pairs]
+        return self.render_rays(t, [f for f, _ in pairs], rays, light_pos)
+
+    @torch.no_grad()
+    def render_rays(self, t: TrainTensors, frames: list[int], rays: list[Rays],
+                    light_pos: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """Images [K, H, W, 3] and opacity [K, H, W] of frames ``frames`` seen through ``rays`` (any camera, any
+        resolution, e.g. a preview larger than the training images), under each frame's light."""
         rgbs, alphas = [], []
-        for f, c in pairs:
+        for f, frame_rays in zip(frames, rays):
             geo = decode(self.model, t.guide_vertices[f:f + 1])
             lp = t.light_pos[f:f + 1] if light_pos is None else light_pos[None]
             b = t.bar[f:f + 1]
@@ -224,8 +232,7 @@ class Renderer:
             known = torch.as_tensor([int(x) in self.basis_index for x in b.tolist()], device=b.device)
             b_eff = torch.where(known, b, torch.full_like(b, -1))
             intensity = self.model.bar_intensity(b_eff)
-            rays = Rays(*t.image_rays(f, c), t.cam_pos[f, c], t.height, t.width)
-            image = render(self.model, geo, rays, self.lights(lp, b_eff, intensity),
+            image = render(self.model, geo, frame_rays, self.lights(lp, b_eff, intensity),
                            basis=self.basis, kernel=self.kernel)
             rgbs.append(image.rgb)
             alphas.append(image.alpha)

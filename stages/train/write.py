@@ -25,7 +25,7 @@ from stages.train.trainer import TrainTensors
 
 def write_train_outputs(out: TrainOutput, data: TrainData, setup: TrainingSetup, heads: TrainedHeads,
                         results: HeldOutResults, metrics: dict[str, float], params: TrainParams,
-                        log: logging.Logger) -> None:
+                        log: logging.Logger, inputs: dict[str, Path] | None = None) -> None:
     """The splits, capacity report, models, learning curves, results table and previews of a run."""
     splits, avatar = setup.splits, setup.avatar
     _write_splits(out.splits_path, data, splits)
@@ -47,6 +47,10 @@ def write_train_outputs(out: TrainOutput, data: TrainData, setup: TrainingSetup,
     out.table_path.write_text(table)
     log.info("results (linear RGB; novel-light predictions exposure-matched):\n%s", table)
     _write_previews(out.previews_dir, setup.tensors, setup.pairs, results.renders, params.previews)
+    if inputs is not None:  # the capture's full-size images, for the comparison figures
+        from stages.train.comparisons import write_comparisons
+
+        write_comparisons(out.comparisons_dir, inputs, data, setup, heads, params.previews, log)
 
 
 def _write_splits(path: Path, data: TrainData, splits: Splits) -> None:

@@ -43,6 +43,15 @@ def report_dir(tmp_path_factory) -> Path:
     gradient = np.linspace(0, 1, 32 * 48 * 3, dtype=np.float32).reshape(32, 48, 3)
     write_png_srgb(inputs["capture"] / "contact_sheet.png", gradient)
     write_png_srgb(inputs["train"] / "learning_curve.png", gradient[::-1])
+    # The pictures: train's comparison figures and relight_eval's, each with its caption in words.
+    (inputs["train"] / "comparisons").mkdir()
+    write_png_srgb(inputs["train"] / "comparisons" / "novel_light.png", gradient)
+    (inputs["train"] / "comparisons" / "captions.json").write_text(json.dumps(
+        {"novel_light": "Novel light: LED bars 8, 13, never lit in training", "novel_perf": "no figure: left out"}))
+    (inputs["relight_eval"] / "compare").mkdir()
+    write_png_srgb(inputs["relight_eval"] / "compare" / "figure_envmap.png", gradient)
+    (inputs["relight_eval"] / "compare" / "captions.json").write_text(json.dumps(
+        {"envmap": "Environment maps: the studio's ray-traced ground truth against the relit head"}))
     (inputs["relight"] / "paths.json").write_text(json.dumps({
         "envmap_studio": {"path": "bake", "reason": "12 envmap frames share its view", "frames": 4},
         "point_orbit": {"path": "voxel_sum", "reason": "near-field point light", "frames": 8}}))
@@ -72,6 +81,11 @@ def test_report_holds_every_table_and_verdict(report_dir: Path) -> None:
     assert 'id="paths-relight"' in page and "<td>envmap_studio</td><td>bake</td><td>4</td>" in page
     assert (report_dir / "charts" / "timings.png").is_file()
     assert (report_dir / "charts" / "tradeoff_relight_directions.png").is_file()
+    # The pictures section, captions in words (a figure whose file is missing is left out).
+    assert 'id="pictures"' in page
+    assert "<figcaption>Novel light: LED bars 8, 13, never lit in training</figcaption>" in page
+    assert "Environment maps: the studio&#x27;s ray-traced ground truth" in page and "no figure" not in page
+    assert not re.search(r"<figcaption>[^<]*[0-9a-f]{16}", page), "a caption holds a content digest"
     # self-contained: no reference to a file outside the page
     assert not re.search(r'src="(?!data:)', page)
 
@@ -92,7 +106,7 @@ def test_report_renders_in_headless_chromium_without_broken_images(report_dir: P
     check = re.search(r'id="image-check"[^>]*', dom)
     assert check, "the page's load script did not run"
     attrs = dict(re.findall(r'data-(\w+)="(\d+)"', check.group(0)))
-    assert int(attrs["images"]) >= 4  # contact sheet, learning curve, targets, timings, trade-off
+    assert int(attrs["images"]) >= 6  # contact sheet, learning curve, targets, timings, trade-off, comparisons
     assert int(attrs["broken"]) == 0
     assert int(attrs["tables"]) >= 5
 

@@ -1,0 +1,94 @@
+"""The train stage's comparison figures: per held-out split, ground truth | ours | TRAvatar* | their errors.
+
+The paper's comparison figure for every split the stage measures, at the **capture's**
+resolution rather than the training images' (the volumetric head renders at any resolution,
+and the capture holds the full-size ground truth): the first ``count`` evaluation images of
+the split (the same (frame, camera) pairs the table's figures start from), each model
+rendered through the frame's stabilised head-space camera under the frame's light. As for
+the table, predictions under novel lights are scaled to the ground truth's exposure (least
+squares: the network's light units are its own). Errors share one scale per figure
+(``scene.comparison_figure``).
+
+Writes ``comparisons/<split>.png`` and ``comparisons/captions.json`` (split -> caption in
+words, for the report).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from avatar.render import Rays
+from scene.comparison_figure import ComparisonRow, write_comparison_figure
+from stages.capture.output import CaptureOutput
+from stages.matte.output import MatteOutput
+from stages.stabilize.output import StabilizeOutput
+from stages.train.data import TrainData
+from stages.train.evaluate import SCALED_SPLITS
+from stages.train.fit import TrainedHeads
+from stages.train.setup import TrainingSetup
+
+MODEL_LABELS = {"ours": "ours", "travatar": "TRAvatar*"}
+
+
+def split_caption(split: str, setup: TrainingSetup) -> str:
+    """What a split holds, in words."""
+    splits = setup.splits
+    bars = ", ".join(str(b) for b in splits.held_out_bars)
+    take = splits.held_out_take
+    captions = {
+        "novel_light": f"Novel light: LED bars {bars}, never lit in training, on frames of the training performance",
+        "novel_perf": f"Novel performance: {take} of the capture, never seen in training, under training lights",
+        "novel_both": f"Novel light and performance: bars {bars} on {take}",
+    }
+    return captions.get(split, split.replace("_", " "))
+
+
+def write_comparisons(folder: Path, inputs: dict[str, Path], data: TrainData, setup: TrainingSetup,
+                      heads: TrainedHeads, count: int, log: logging.Logger) -> dict[str, str]:
+    """Write one comparison figure per split with evaluation images; returns split -> caption."""
+    if count <= 0:
+        return {}
+    capture, matte = CaptureOutput(inputs["capture"]), MatteOutput(inputs["matte"])
+    cams_head = StabilizeOutput(inputs["stabilize"]).cameras_head_by_name()
+    tensors = setup.tensors
+    folder.mkdir(parents=True, exist_ok=True)
+    captions: dict[str, str] = {}
+    for split, pairs in setup.pairs.items():
+        if not pairs:
+            continue
+        rows = []
+        for f, c in pairs[:count]:
+            index, name = int(data.frame_index[f]), data.camera_names[c]
+            camera = cams_head[index][name]  # the capture's resolution
+            truth = capture.frame(name, index)[..., :3].astype(np.float32) * np.float32(setup.image_scale)
+            rays = Rays.of_camera(camera, tensors.device)
+            predictions = {}
+            for kind in heads.kinds:
+                rgb, _ = heads.renderers[kind].render_rays(tensors, [f], [rays])
+                pred = rgb[0].float().cpu()
+                if split in SCALED_SPLITS:
+                    target = torch.as_tensor(truth)
+                    scale = (pred * target).sum() / (pred * pred).sum().clamp(min=1e-12)
+                    pred = pred * scale
+                predictions[MODEL_LABELS.get(kind, kind)] = pred.numpy()
+            rows.append(ComparisonRow(f"frame {index}, {name}, bar {int(data.bar[f])}", truth, predictions,
+                                      truth_alpha=matte.matte(name, index)))
+        caption = split_caption(split, setup)
+        h, w = rows[0].truth.shape[:2]
+        write_comparison_figure(folder / f"{split}.png", rows, f"{caption} ({w} x {h} px, the capture's size)")
+        captions[split] = (f"{caption}. Ground truth, each model's render at the capture's {w} x {h} px, and each "
+                           "model's per-pixel error (mean over RGB, as a fraction of the ground truth's white; one "
+                           "colour scale per figure)"
+                           + (". Predictions scaled to the ground truth's exposure, as in the table" if split in
+                              SCALED_SPLITS else ""))
+        log.info("comparison figure %s: %d images", split, len(rows))
+    (folder / "captions.json").write_text(json.dumps(captions, indent=1))
+    return captions
+
+
+__all__ = ["split_caption", "write_comparisons"]
