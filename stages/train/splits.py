@@ -119,17 +119,16 @@ def make_splits(take: np.ndarray, bar: np.ndarray, bar_dirs: dict[int, np.ndarra
         name = f"{name}[{cut}:]"
     val_segment = _segment_before(len(take), in_take, cut, int(round(len(in_take) * validation.fraction)))
     seen_perf = ~perf & ~val_segment
-    # Only bars lit in the training performance: a held-out bar is then inside the hull of the bars that
-    # train (removing interior bars leaves the hull as it was), even where a held-out segment takes a bar's
-    # only frames.
-    seen = set(bar[seen_perf].tolist())
-    # Test bars: lit in the test segment too, so that every test split has frames.
-    held_bars = interior_bars({b: d for b, d in bar_dirs.items() if b in seen}, held_out_bars,
-                              seen & set(bar[perf].tolist()))
-    # Validation bars by the same rule among the rest, preferring bars unlit in the test segment, whose frames
-    # they would take from the test splits.
-    val_bars = interior_bars({b: d for b, d in bar_dirs.items() if b in seen and b not in held_bars},
-                             validation.bars, seen - set(bar[perf].tolist()))
+    lit, seen, in_perf = set(bar.tolist()), set(bar[seen_perf].tolist()), set(bar[perf].tolist())
+    # Test bars: preferably lit in the test segment and in the training performance, so that every test split
+    # has frames. From every lit bar, so that a capture lighting each bar once (the smoke preset) still has
+    # frames of novel light and novel performance together.
+    held_bars = interior_bars({b: d for b, d in bar_dirs.items() if b in lit}, held_out_bars, seen & in_perf)
+    # Validation bars by the same rule among the rest (the test bars are interior: the hull stays the same),
+    # preferring bars lit in the training performance (validation-light frames) and unlit in the test segment,
+    # whose frames they would take from the test splits.
+    val_bars = interior_bars({b: d for b, d in bar_dirs.items() if b in lit and b not in held_bars},
+                             validation.bars, seen - in_perf)
     test_light, val_light = np.isin(bar, held_bars), np.isin(bar, val_bars)
     seen_light = ~test_light & ~val_light
     return Splits(train=seen_perf & seen_light, val_light=seen_perf & val_light, val_perf=val_segment & seen_light,

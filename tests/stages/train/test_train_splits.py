@@ -51,11 +51,14 @@ def test_validation_holds_its_own_bars_and_frames_apart_from_the_test(held_out_f
     take = np.array(["rom"] * 32 + ["speech"] * 32)
     bar = np.concatenate([np.arange(32), np.arange(32)])
     s = make_splits(take, bar, dirs, 3, "", held_out_fraction, ValidationSplit(bars=2, fraction=0.25))
-    # Validation's bars: two interior bars, none of the test's, inside the hull of the training bars.
+    # Validation's bars: two interior bars, none of the test's, inside the hull of the other bars (of the
+    # training bars where the training performance lights every bar; with the whole take held out for the
+    # test, validation's segment takes the last row of bars from training).
     assert len(s.val_bars) == 2 and not set(s.val_bars) & set(s.held_out_bars)
     training_bars = set(bar[s.train].tolist())
     assert not training_bars & (set(s.val_bars) | set(s.held_out_bars))
-    hull = ConvexHull(direction_uv(np.stack([dirs[b] for b in sorted(training_bars)])))
+    others = training_bars if held_out_fraction < 1 else set(dirs) - set(s.val_bars + s.held_out_bars)
+    hull = ConvexHull(direction_uv(np.stack([dirs[b] for b in sorted(others)])))
     for b in s.val_bars + s.held_out_bars:
         uv = direction_uv(dirs[b][None])[0]
         assert (hull.equations[:, :2] @ uv + hull.equations[:, 2]).max() < 0
