@@ -45,7 +45,7 @@ def write_train_outputs(out: TrainOutput, data: TrainData, setup: TrainingSetup,
     _write_curve_tradeoff(out.curve_tradeoff_path, curves, avatar, params.capacity)
     table = results_table(metrics, heads.kinds)
     out.table_path.write_text(table)
-    log.info("results (linear RGB; novel-light predictions exposure-matched):\n%s", table)
+    log.info("results (linear RGB; predictions under held-out lights exposure-matched):\n%s", table)
     # Previews of the test splits only, as before the validation split (the report shows them).
     test_pairs = {split: setup.pairs[split] for split in SPLITS}
     _write_previews(out.previews_dir, setup.tensors, test_pairs, results.renders, params.previews)
