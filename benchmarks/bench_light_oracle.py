@@ -133,7 +133,7 @@ def main() -> dict:
     data = load_train_data(inputs, params.image_width_px, logging.getLogger("bench.light_oracle"), params.max_frames)
     bar_dirs = bar_directions(data)
     splits = make_splits(data.take, data.bar, bar_dirs, params.held_out_bars, params.held_out_take,
-                         params.held_out_fraction)
+                         params.held_out_fraction, params.validation)
     train_frames = np.flatnonzero(splits.train)
     scale = exposure_of(data, train_frames)
     training_bars = sorted(int(b) for b in np.unique(data.bar[train_frames]))

@@ -1,4 +1,4 @@
-"""The trained heads measured: held-out metrics per split and model, and the run's summary figures.
+"""The trained heads measured: validation and test metrics per split and model, and the run's summary figures.
 
 Pure over the trained models, the setup and the params: renders and numbers, no files.
 """
@@ -19,7 +19,7 @@ from stages.train.evaluate import SCALED_SPLITS, coverage_metrics, eval_pairs, i
 from stages.train.fit import TrainedHeads
 from stages.train.params import TrainParams
 from stages.train.setup import TrainingSetup
-from stages.train.splits import SPLITS, Splits, nearest_training_distance_mm
+from stages.train.splits import HELD_OUT_SPLITS, Splits, nearest_training_distance_mm
 from stages.train.trainer import Renderer, TrainTensors
 
 
@@ -28,7 +28,8 @@ class HeldOutResults:
     """What the trained heads scored and rendered.
 
     Attributes:
-        metrics: ``{kind}_train_psnr``, ``{kind}_{split}_{measure}`` and ours' render-time figures.
+        metrics: ``{kind}_train_psnr``, ``{kind}_{split}_{measure}`` (validation and test splits) and ours'
+            render-time figures.
         renders: each kind's predictions [K, H, W, 3] per split (exposure-matched on the
             scaled splits), in the order of ``TrainingSetup.pairs``; the previews show them.
     """
@@ -39,21 +40,25 @@ class HeldOutResults:
 
 def assess_heads(heads: TrainedHeads, setup: TrainingSetup, params: TrainParams, lpips: torch.nn.Module | None,
                  log: logging.Logger) -> HeldOutResults:
-    """Every kind's fit on its training images and its metrics on every held-out split."""
+    """Every kind's fit on its training images and its metrics on every validation and test split.
+
+    The test splits are only measured here, at the end; nothing reads them to choose anything.
+    """
     tensors, pairs = setup.tensors, setup.pairs
     metrics: dict[str, float] = {}
     renders: dict[str, dict[str, torch.Tensor]] = {}
     for kind in heads.kinds:
         renderer = heads.renderers[kind]
         if kind == "ours":
-            metrics.update(_prune_render_figures(renderer, tensors, pairs["novel_light"] or pairs["novel_perf"]))
+            # On validation images: the figures a pruning setting is judged by, never the test's.
+            metrics.update(_prune_render_figures(renderer, tensors, pairs["val_light"] or pairs["val_perf"]))
         # The fit on training images (seen frames, cameras and lights): next to the held-out
         # figures it tells underfitting (both low) from overfitting (a large gap).
         fit_pairs = eval_pairs(setup.fitted_frames, setup.num_cams, params.eval_images)
         pred, _ = renderer.render_images(tensors, fit_pairs)
         metrics[f"{kind}_train_psnr"] = image_metrics(pred, tensors.target_images(fit_pairs), scale=False)["psnr"]
         renders[kind] = {}
-        for split in SPLITS:
+        for split in HELD_OUT_SPLITS:
             if not pairs[split]:
                 log.warning("split %s is empty; no metrics for it", split)
                 continue
@@ -105,7 +110,7 @@ def expression_spread_metrics(guide_vertices: np.ndarray, splits: Splits) -> dic
     """
     out = {"train_expression_spacing_mm": float(np.mean(nearest_training_distance_mm(
         guide_vertices, splits.train, splits.train)))} if splits.train.sum() > 1 else {}
-    for split in SPLITS:
+    for split in HELD_OUT_SPLITS:
         if splits.mask(split).any():
             out[f"{split}_expression_distance_mm"] = float(np.mean(nearest_training_distance_mm(
                 guide_vertices, splits.train, splits.mask(split))))

@@ -31,6 +31,7 @@ from stages.train.data import TrainData
 from stages.train.evaluate import SCALED_SPLITS
 from stages.train.fit import TrainedHeads
 from stages.train.setup import TrainingSetup
+from stages.train.splits import SPLITS, VAL_SPLITS
 
 MODEL_LABELS = {"ours": "ours", "travatar": "TRAvatar*"}
 
@@ -40,10 +41,16 @@ def split_caption(split: str, setup: TrainingSetup) -> str:
     splits = setup.splits
     bars = ", ".join(str(b) for b in splits.held_out_bars)
     take = splits.held_out_take
+    val_bars = ", ".join(str(b) for b in splits.val_bars)
     captions = {
-        "novel_light": f"Novel light: LED bars {bars}, never lit in training, on frames of the training performance",
-        "novel_perf": f"Novel performance: {take} of the capture, never seen in training, under training lights",
-        "novel_both": f"Novel light and performance: bars {bars} on {take}",
+        "val_light": f"Validation light (chooses settings, never reported as a result): LED bars {val_bars}, never "
+                     "lit in training, on frames of the training performance",
+        "val_perf": f"Validation performance (chooses settings, never reported as a result): {splits.val_segment}, "
+                    "never seen in training, under training lights",
+        "novel_light": f"Test, novel light: LED bars {bars}, never lit in training, on frames of the training "
+                       "performance",
+        "novel_perf": f"Test, novel performance: {take} of the capture, never seen in training, under training lights",
+        "novel_both": f"Test, novel light and performance: bars {bars} on {take}",
     }
     return captions.get(split, split.replace("_", " "))
 
@@ -58,7 +65,8 @@ def write_comparisons(folder: Path, inputs: dict[str, Path], data: TrainData, se
     tensors = setup.tensors
     folder.mkdir(parents=True, exist_ok=True)
     captions: dict[str, str] = {}
-    for split, pairs in setup.pairs.items():
+    for split in SPLITS + VAL_SPLITS:  # the test splits first: what a user will get
+        pairs = setup.pairs.get(split, [])
         if not pairs:
             continue
         rows = []

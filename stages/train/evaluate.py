@@ -10,8 +10,10 @@ import torch
 from avatar.metrics import exposure_scale, mae, psnr, ssim
 
 SPLIT_TITLES = {"novel_light": "novel light", "novel_perf": "novel performance", "novel_both": "both"}
+#: The validation splits' rows of the results table, above the test splits'.
+VAL_SPLIT_TITLES = {"val_light": "validation light", "val_perf": "validation performance"}
 #: Splits with held-out lights, whose predictions are scaled to the ground truth's exposure.
-SCALED_SPLITS = ("novel_light", "novel_both")
+SCALED_SPLITS = ("val_light", "novel_light", "novel_both")
 
 
 def eval_pairs(frames: np.ndarray, num_cameras: int, count: int) -> list[tuple[int, int]]:
@@ -71,7 +73,7 @@ def coverage_metrics(pred: torch.Tensor, alpha: torch.Tensor, target: torch.Tens
 
 
 def curve_png(path: Path, curves: dict[str, list], title: str) -> None:
-    """Held-out PSNR against training wall-clock time, one line per model."""
+    """Validation-light PSNR against training wall-clock time, one line per model."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -83,7 +85,7 @@ def curve_png(path: Path, curves: dict[str, list], title: str) -> None:
             pts = np.asarray(points, float)
             ax.plot(pts[:, 1], pts[:, 2], marker="o", ms=3, label=name)
     ax.set_xlabel("training time (s)")
-    ax.set_ylabel("held-out PSNR, novel light (dB)")
+    ax.set_ylabel("validation PSNR, held-out light (dB)")
     ax.set_title(title)
     ax.grid(alpha=0.3)
     ax.legend()
@@ -93,12 +95,12 @@ def curve_png(path: Path, curves: dict[str, list], title: str) -> None:
 
 
 def results_table(metrics: dict[str, float], models: list[str]) -> str:
-    """The paper's table: rows = splits, columns = PSNR / MAE / SSIM / LPIPS per model (Markdown)."""
+    """The paper's table: rows = splits (validation, then test), columns = PSNR / MAE / SSIM / LPIPS per model (Markdown)."""
     names = {"ours": "ours", "travatar": "TRAvatar*"}
     cols = ["psnr", "mae", "ssim", "lpips"]
     header = "| split | " + " | ".join(f"{names[m]} {c.upper()}" for m in models for c in cols) + " |"
     lines = [header, "|" + " --- |" * (1 + len(models) * len(cols))]
-    for split, title in SPLIT_TITLES.items():
+    for split, title in {**VAL_SPLIT_TITLES, **SPLIT_TITLES}.items():
         cells = []
         for m in models:
             for c in cols:

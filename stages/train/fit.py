@@ -103,7 +103,7 @@ def fit_heads(setup: TrainingSetup, num_bars: int, params: TrainParams, device: 
 
 
 def _curve_psnr(renderer: Renderer, tensors: TrainTensors, pairs: list[tuple[int, int]]) -> Callable[[], float]:
-    """The learning curve's measure: the novel-light PSNR of ``pairs`` (NaN without any)."""
+    """The learning curve's measure: the validation-light PSNR of ``pairs`` (NaN without any)."""
 
     def psnr() -> float:
         if not pairs:

@@ -3,15 +3,15 @@
 Files::
 
     models/ours/, models/travatar/   ``avatar.io.save_trained`` folders (``load_trained``)
-    splits.json                      held-out bars / take and the frames of every split
-    learning_curve.png, curve.json   held-out (novel light) PSNR against training time
+    splits.json                      test and validation bars / segments, the frames of every split
+    learning_curve.png, curve.json   validation-light PSNR against training time
     tradeoffs/learning_curve.json    the same as a report trade-off series
     capacity.json                    the capacity rule's inputs and choice
     table.md                         the paper's table
     previews/<split>_<k>.png         ground truth | ours | TRAvatar*, sRGB, at the training images' size
     comparisons/<split>.png          ground truth | ours | TRAvatar* | their error heat maps, at the capture's size
     comparisons/captions.json        split -> the figure's caption in words
-    tensorboard/                     loss terms and held-out PSNR
+    tensorboard/                     loss terms and validation-light PSNR
 
 A missing or malformed file raises one ``InputError`` naming it and saying to rerun train.
 """
@@ -76,7 +76,7 @@ class TrainOutput(StageOutput):
         return self.splits_path.is_file()
 
     def splits(self) -> dict[str, Any]:
-        """``splits.json``: held_out_bars, held_out_take and the frame indices of every split."""
+        """``splits.json``: held_out_bars, held_out_take, val_bars, val_segment and the frame indices of every split."""
         return self.read_json(_SPLITS)
 
     @property

@@ -1,4 +1,4 @@
-"""The train stage's params: the model, its capacity rule, the run length and the held-out splits."""
+"""The train stage's params: the model, its capacity rule, the run length and the validation and test splits."""
 
 from __future__ import annotations
 
@@ -11,6 +11,7 @@ from avatar.config import AvatarConfig
 from avatar.raymarch import RaymarchKernel
 from pipeline.devices import DeviceChoice
 from pipeline.stage import StageParams
+from stages.train.splits import ValidationSplit
 from stages.train.trainer import LossWeights, Pruning
 
 
@@ -52,9 +53,15 @@ class TrainParams(StageParams):
     loss_weights: LossWeights = Field(default_factory=LossWeights,
                                       description="Weights of the loss terms (photometric, guide mesh, volume, KL, "
                                       "matte); see stages.train.trainer.LossWeights.")
-    held_out_bars: int = Field(3, ge=1, description="Interior bars held out for the novel-light split.")
-    held_out_take: str = Field("", description="Take whose final segment is the novel performance ('' = the last take).")
-    held_out_fraction: float = Field(0.5, gt=0, le=1, description="Final fraction of that take held out (1 = all of it).")
+    held_out_bars: int = Field(3, ge=1, description="Interior bars held out for the novel-light test split.")
+    held_out_take: str = Field("", description="Take whose final segment is the novel-performance test split ('' = "
+                               "the last take).")
+    held_out_fraction: float = Field(0.5, gt=0, le=1, description="Final fraction of that take held out for the "
+                                     "test (1 = all of it).")
+    validation: ValidationSplit = Field(default_factory=ValidationSplit,
+                                        description="The validation split's own held-out bars and frames, disjoint "
+                                        "from the test's; the learning curve and the pruning figures are measured "
+                                        "on it. See stages.train.splits.ValidationSplit.")
     fit_frames: int = Field(0, ge=0, description="Diagnostic: optimise on only the first K training frames (all "
                             "their cameras; 0 = every training frame). With 1 it measures how well the model's "
                             "capacity can fit one frame in the iteration budget (train_psnr), an upper bound for "
@@ -63,7 +70,7 @@ class TrainParams(StageParams):
     eval_images: int = Field(12, ge=1, description="Held-out images rendered per split for the metrics.")
     lpips: bool = Field(True, description="Compute LPIPS (AlexNet weights from assets/lpips).")
     curve_every: int = Field(100, ge=0, description="Iterations between learning-curve points (0 = none).")
-    curve_images: int = Field(3, ge=1, description="Novel-light images per learning-curve point.")
+    curve_images: int = Field(3, ge=1, description="Validation-light images per learning-curve point.")
     checkpoint_every: int = Field(50, ge=1, description="Iterations between checkpoints (resume after a kill).")
     spike_factor: float = Field(10.0, gt=1, description="A loss above this multiple of its running mean rolls back.")
     seed: int = Field(0, description="Seed of initialisation and sampling.")

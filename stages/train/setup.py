@@ -21,7 +21,7 @@ from pipeline.errors import ConfigError, InputError
 from stages.train.data import TrainData
 from stages.train.evaluate import eval_pairs
 from stages.train.params import TrainParams
-from stages.train.splits import SPLITS, Splits, make_splits
+from stages.train.splits import ALL_SPLITS, HELD_OUT_SPLITS, Splits, make_splits
 from stages.train.trainer import TrainTensors
 
 
@@ -30,7 +30,7 @@ class TrainingSetup:
     """What both models train and are evaluated on.
 
     Attributes:
-        splits: the held-out bars / take and every frame's split.
+        splits: the validation and test bars / segments and every frame's split.
         train_frames: indices of the training frames; ``fitted_frames`` the ones optimised on
             (all of them unless ``fit_frames`` is set).
         image_scale: the exposure every image was multiplied by (``exposure_of``).
@@ -41,8 +41,8 @@ class TrainingSetup:
         basis_bars: the bars lit in training frames (TRAvatar*'s light basis, in this order).
         basis: TRAvatar*'s light basis over ``basis_bars``.
         num_cams: cameras per frame.
-        pairs: the (frame, camera) pairs evaluated per split.
-        curve_pairs: the novel-light pairs of every learning-curve point.
+        pairs: the (frame, camera) pairs evaluated per held-out split (``HELD_OUT_SPLITS``).
+        curve_pairs: the validation-light pairs of every learning-curve point (never a test split's).
     """
 
     splits: Splits
@@ -66,14 +66,17 @@ def prepare_training(data: TrainData, params: TrainParams, device: torch.device,
     """The setup of a run; scales ``data.images`` by the exposure in place (a spilled array on disk)."""
     bar_dirs = bar_directions(data)
     splits = make_splits(data.take, data.bar, bar_dirs, params.held_out_bars, params.held_out_take,
-                         params.held_out_fraction)
+                         params.held_out_fraction, params.validation)
     train_frames = np.flatnonzero(splits.train)
     if len(train_frames) == 0:
-        raise InputError("train: no training frames left after holding out "
-                         f"bars {splits.held_out_bars} and take '{splits.held_out_take}'; capture more OLAT frames")
+        raise InputError("train: no training frames left after holding out test bars "
+                         f"{splits.held_out_bars} and take '{splits.held_out_take}', validation bars "
+                         f"{splits.val_bars} and frames '{splits.val_segment}'; capture more OLAT frames")
     image_scale = exposure_of(data, train_frames)
     data.images *= image_scale  # in place (a spilled array is rescaled on disk, page by page)
-    log.info("splits: %s", {k: int(splits.mask(k).sum()) for k in ("train",) + SPLITS})
+    log.info("splits: %s (validation bars %s, frames %s; test bars %s, frames %s)",
+             {k: int(splits.mask(k).sum()) for k in ALL_SPLITS}, list(splits.val_bars), splits.val_segment,
+             list(splits.held_out_bars), splits.held_out_take)
     capacity = capacity_of(data, train_frames, params)
     avatar = capacity.config if params.capacity == "auto" else params.avatar
     log.info("capacity (%s): %d primitives (N=%d) of %d^3 voxels, width %d, %d steps, latent %d; rule inputs: "
@@ -89,11 +92,11 @@ def prepare_training(data: TrainData, params: TrainParams, device: torch.device,
     fitted_frames = train_frames[:params.fit_frames] if params.fit_frames else train_frames
     basis = LightBasis(np.stack([bar_dirs[b] for b in basis_bars]))
     num_cams = len(data.camera_names)
-    pairs = {s: eval_pairs(np.flatnonzero(splits.mask(s)), num_cams, params.eval_images) for s in SPLITS}
+    pairs = {s: eval_pairs(np.flatnonzero(splits.mask(s)), num_cams, params.eval_images) for s in HELD_OUT_SPLITS}
     return TrainingSetup(splits=splits, train_frames=train_frames, fitted_frames=fitted_frames,
                          image_scale=image_scale, bar_dirs=bar_dirs, capacity=capacity, avatar=avatar,
                          layout=layout, tensors=tensors, basis_bars=basis_bars, basis=basis, num_cams=num_cams,
-                         pairs=pairs, curve_pairs=pairs["novel_light"][:params.curve_images])
+                         pairs=pairs, curve_pairs=pairs["val_light"][:params.curve_images])
 
 
 def training_tensors(data: TrainData, guide_ids: np.ndarray, device: torch.device) -> TrainTensors:

@@ -6,13 +6,13 @@ Inputs: ``capture`` (OLAT images, manifest), ``stabilize`` (per-frame cam_from_h
 
 Output:
     models/ours/, models/travatar/   ``model.safetensors`` + ``model.json`` (``avatar.io.load_trained``)
-    splits.json                      held-out bars / take and the frames of every split
-    learning_curve.png, curve.json   held-out (novel light) PSNR against training time
+    splits.json                      test and validation bars / segments, the frames of every split
+    learning_curve.png, curve.json   validation-light PSNR against training time
     tradeoffs/learning_curve.json    the same as a report trade-off series, the chosen configuration marked
     capacity.json                    the capacity rule's inputs (image size, head footprint, frames, expression modes) and choice
     table.md                         the paper's table (rows: splits; PSNR, MAE, SSIM, LPIPS per model)
     previews/<split>_<k>.png         ground truth | ours | TRAvatar*, sRGB
-    tensorboard/                     loss terms and held-out PSNR
+    tensorboard/                     loss terms and validation-light PSNR
     metrics.json                     the required train keys are listed in docs/design.md (metrics)
 
 The two models train one after another, or side by side in two threads of this process

@@ -177,7 +177,7 @@ class TrainState:
     loss_ema: float = float("nan")
     lr: float = 0.0
     rollbacks: int = 0
-    curve: list = field(default_factory=list)  # [(iteration, train_seconds, novel-light PSNR dB)]
+    curve: list = field(default_factory=list)  # [(iteration, train_seconds, validation-light PSNR dB)]
     pruned: int = 0  # primitives pruned (0 until the scheduled iteration)
     prune_done: bool = False
 
@@ -548,7 +548,7 @@ class ModelTrainer:
                 value = self.curve_fn()
                 self.state.curve.append((it, self.state.train_seconds, value))
                 if self.writer is not None:
-                    self.writer.add_scalar(f"{self.r.kind}/heldout_psnr", value, it)
+                    self.writer.add_scalar(f"{self.r.kind}/val_light_psnr", value, it)
             if self.prune is not None and not self.state.prune_done and it >= self.prune.at_iteration:
                 self.prune_now()
             if it % self.checkpoint_every == 0 or it == self.iterations:

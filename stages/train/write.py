@@ -19,7 +19,7 @@ from stages.train.fit import TrainedHeads
 from stages.train.output import TrainOutput
 from stages.train.params import TrainParams
 from stages.train.setup import TrainingSetup
-from stages.train.splits import SPLITS, Splits
+from stages.train.splits import ALL_SPLITS, SPLITS, Splits
 from stages.train.trainer import TrainTensors
 
 
@@ -34,19 +34,21 @@ def write_train_outputs(out: TrainOutput, data: TrainData, setup: TrainingSetup,
         model = heads.renderers[kind].model
         extra = {"image_scale": setup.image_scale, "basis_bars": setup.basis_bars,
                  "basis_directions": np.stack([setup.bar_dirs[b] for b in setup.basis_bars]).tolist(),
-                 "held_out_bars": list(splits.held_out_bars),
+                 "held_out_bars": list(splits.held_out_bars), "val_bars": list(splits.val_bars),
                  "bar_intensity": {int(b): float(torch.exp(model.log_bar_intensity[b]).detach())
                                    for b in setup.basis_bars}}
         save_trained(out.model_dir(kind), model, kind, extra)
     curves = {kind: heads.states[kind].curve for kind in heads.kinds}
     curve_png(out.curve_png_path, {("TRAvatar*" if k == "travatar" else k): v for k, v in curves.items()},
-              f"held-out bars {list(splits.held_out_bars)}")
+              f"validation bars {list(splits.val_bars)}")
     out.curve_path.write_text(json.dumps(curves))
     _write_curve_tradeoff(out.curve_tradeoff_path, curves, avatar, params.capacity)
     table = results_table(metrics, heads.kinds)
     out.table_path.write_text(table)
-    log.info("results (linear RGB; novel-light predictions exposure-matched):\n%s", table)
-    _write_previews(out.previews_dir, setup.tensors, setup.pairs, results.renders, params.previews)
+    log.info("results (linear RGB; predictions under held-out lights exposure-matched):\n%s", table)
+    # Previews of the test splits only, as before the validation split (the report shows them).
+    test_pairs = {split: setup.pairs[split] for split in SPLITS}
+    _write_previews(out.previews_dir, setup.tensors, test_pairs, results.renders, params.previews)
     if inputs is not None:  # the capture's full-size images, for the comparison figures
         from stages.train.comparisons import write_comparisons
 
@@ -54,9 +56,11 @@ def write_train_outputs(out: TrainOutput, data: TrainData, setup: TrainingSetup,
 
 
 def _write_splits(path: Path, data: TrainData, splits: Splits) -> None:
+    """The test's and validation's bars and segments, and the frame indices of every split (``ALL_SPLITS``)."""
     path.write_text(json.dumps({
         "held_out_bars": list(splits.held_out_bars), "held_out_take": splits.held_out_take,
-        **{name: data.frame_index[splits.mask(name)].tolist() for name in ("train",) + SPLITS}}, indent=1))
+        "val_bars": list(splits.val_bars), "val_segment": splits.val_segment,
+        **{name: data.frame_index[splits.mask(name)].tolist() for name in ALL_SPLITS}}, indent=1))
 
 
 def _write_capacity(path: Path, params: TrainParams, capacity: Capacity, avatar: AvatarConfig) -> None:
@@ -96,8 +100,8 @@ def _write_curve_tradeoff(path: Path, curves: dict[str, list], avatar: AvatarCon
                 point["chosen"] = True
                 point["label"] = f"{it} it"
             points.append(point)
-    path.write_text(json.dumps({"title": "Held-out PSNR (novel light) against training time",
-                                "x_label": "training time (s)", "y_label": "held-out PSNR (dB)",
+    path.write_text(json.dumps({"title": "Validation PSNR (held-out light) against training time",
+                                "x_label": "training time (s)", "y_label": "validation PSNR (dB)",
                                 "points": points}, indent=1))
 
 

@@ -22,13 +22,17 @@ def test_a_consistent_lead_is_called_and_a_tie_is_not():
 def test_earlier_runs_are_reused_only_with_the_same_settings_and_data(tmp_path):
     import json
 
-    from benchmarks.bench_seeds import _earlier_runs
+    from benchmarks.bench_seeds import MODELS, SPLITS, _earlier_runs
+
+    def run(value: float) -> dict:
+        return {f"{m}_{s}": value for m in MODELS for s in SPLITS}
 
     path = tmp_path / "seeds_alice.json"
     assert _earlier_runs(path, {"lr": 0.003}, "workspace alice") == {}  # no file yet
+    # Seed 3 has no validation figures: trained before the validation split, on more frames; not reused.
     path.write_text(json.dumps({"params": {"lr": 0.003}, "source": "workspace alice",
-                                "runs": {"0": {"ours_train": 27.0}, "2": {"ours_train": 26.0}}}))
-    assert _earlier_runs(path, {"lr": 0.003}, "workspace alice") == {0: {"ours_train": 27.0}, 2: {"ours_train": 26.0}}
+                                "runs": {"0": run(27.0), "2": run(26.0), "3": {"ours_novel_light": 25.0}}}))
+    assert _earlier_runs(path, {"lr": 0.003}, "workspace alice") == {0: run(27.0), 2: run(26.0)}
     assert _earlier_runs(path, {"lr": 0.001}, "workspace alice") == {}  # other settings: train again
     assert _earlier_runs(path, {"lr": 0.003}, "synthetic capture") == {}  # other data: train again
 

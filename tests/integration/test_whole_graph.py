@@ -37,7 +37,8 @@ REQUIRED = {
               "baseline_mae_olat", "baseline_grad_err_olat"],
     "train": ["iterations", "seconds", "iterations_per_second", "peak_memory_mb"]
     + [f"{model}_{split}_{measure}" for model in ("ours", "travatar")
-       for split in ("novel_light", "novel_perf", "novel_both") for measure in ("psnr", "mae", "ssim", "lpips")],
+       for split in ("val_light", "val_perf", "novel_light", "novel_perf", "novel_both")
+       for measure in ("psnr", "mae", "ssim", "lpips")],
     "relight": ["envmap_seconds_per_frame", "naive_envmap_seconds_per_frame", "envmap_directions",
                 "envmap_psnr_mean", "pointlight_psnr_mean", "bake_seconds", "bake_frame_seconds",
                 "bake_psnr_vs_sum_db"],

@@ -30,6 +30,7 @@ def project() -> Project:
 def test_nested_configs_keep_the_effective_values(project: Project, subject: str) -> None:
     from hardware.studio.renderer import RenderSettings
     from scene.envmap import AdaptiveParams, BackMask
+    from stages.train.splits import ValidationSplit
     from stages.train.trainer import LossWeights, Pruning
 
     config = project.subject_config(subject)
@@ -41,6 +42,7 @@ def test_nested_configs_keep_the_effective_values(project: Project, subject: str
     train = project.resolve_params("train", config, need_value=True).value
     assert train.loss_weights == LossWeights(pho=1.0, geo=0.1, vol=0.01, kld=0.001, mat=0.1)
     assert train.pruning == Pruning(at_fraction=0.5, window_fraction=0.2, max_alpha=0.01)
+    assert train.validation == ValidationSplit(bars=2, fraction=0.25)
 
 
 def test_nested_keys_are_set_like_any_other(project: Project) -> None:
@@ -53,9 +55,10 @@ def test_nested_keys_are_set_like_any_other(project: Project) -> None:
 def test_every_nested_setting_says_what_it_does() -> None:
     from hardware.studio.renderer import RenderSettings
     from scene.envmap import AdaptiveParams, BackMask
+    from stages.train.splits import ValidationSplit
     from stages.train.trainer import LossWeights, Pruning
 
-    for cls in (RenderSettings, BackMask, AdaptiveParams, LossWeights, Pruning):
+    for cls in (RenderSettings, BackMask, AdaptiveParams, LossWeights, Pruning, ValidationSplit):
         assert dataclasses.is_dataclass(cls)
         for name, info in cls.__pydantic_fields__.items():
             assert info.description, f"{cls.__name__}.{name} has no description"

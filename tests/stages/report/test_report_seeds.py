@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from benchmarks.bench_seeds import SPLITS, paired_summary
+from benchmarks.bench_seeds import paired_summary
 from stages.report.seeds import seeds_section
 
 
@@ -16,7 +16,7 @@ def test_seeds_section_shows_means_intervals_and_verdicts(tmp_path: Path) -> Non
     base = {"novel_light": [23.0, 24.0, 23.4], "novel_perf": [24.0, 24.3, 24.2], "novel_both": [23.2, 23.6, 23.7],
             "train": [27.0, 27.3, 27.1]}
     result = {"subject": "alice", "source": "test", "iterations": 10, "seeds": [0, 1, 2],
-              "summary": {s: paired_summary(ours[s], base[s]) for s in SPLITS}}
+              "summary": {s: paired_summary(ours[s], base[s]) for s in ours}}
     (tmp_path / "seeds_alice.json").write_text(json.dumps(result))
     html = "".join(seeds_section(tmp_path, "alice").parts)
     assert 'id="seeds-table"' in html and html.count("<tr>") == 5  # header + 4 rows

@@ -11,7 +11,7 @@ import pytest
 
 from pipeline.testing import run_stage_for_test
 from stages.train.output import TrainOutput
-from stages.train.splits import SPLITS
+from stages.train.splits import HELD_OUT_SPLITS
 from stages.train.stage import STAGE
 from tests.stages.train.test_train_stage import BASE
 
@@ -32,10 +32,11 @@ def test_every_split_has_a_comparison_figure_at_the_capture_size(capture, tmp_pa
     manifest = json.loads((capture["capture"] / "manifest.json").read_text())
     size = f"{manifest['width']} x {manifest['height']} px"
     figures = dict((p.stem, c) for p, c in TrainOutput(out).comparisons())
-    assert set(figures) == set(SPLITS)
-    assert figures["novel_light"].startswith("Novel light: LED bars ") and size in figures["novel_light"]
+    assert set(figures) == set(HELD_OUT_SPLITS)
+    assert figures["novel_light"].startswith("Test, novel light: LED bars ") and size in figures["novel_light"]
+    assert figures["val_light"].startswith("Validation light (chooses settings")
     assert "exposure" in figures["novel_light"] and "exposure" not in figures["novel_perf"]
-    for split in SPLITS:
+    for split in HELD_OUT_SPLITS:
         image = cv2.imread(str(out / "comparisons" / f"{split}.png"))
         # Two rows of 256-px cells (the capture is smaller, so they are drawn larger), plus titles.
         assert image.shape[0] >= 2 * 256, (split, image.shape)

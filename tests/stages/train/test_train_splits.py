@@ -1,12 +1,14 @@
-"""Held-out splits: interior bars, held-out segment of the last take, disjoint masks."""
+"""Splits: interior bars, held-out segments of the last take, disjoint masks, validation apart from test."""
 
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from scipy.spatial import ConvexHull
 
 from avatar.travatar import direction_uv
-from stages.train.splits import interior_bars, make_splits, nearest_training_distance_mm
+from stages.train.splits import ALL_SPLITS, VAL_SPLITS, SPLITS, ValidationSplit, interior_bars, make_splits, \
+    nearest_training_distance_mm
 
 
 def _bar_dirs() -> dict[int, np.ndarray]:
@@ -30,13 +32,54 @@ def test_held_out_segment_of_the_last_take():
     dirs = _bar_dirs()
     take = np.array(["rom"] * 32 + ["speech"] * 32)
     bar = np.concatenate([np.arange(32), np.arange(32)])
-    s = make_splits(take, bar, dirs, 3, "", 0.5)
-    assert s.novel_perf.sum() + s.novel_both.sum() == 16
-    assert np.all(np.flatnonzero(s.novel_perf | s.novel_both) >= 48)
+    s = make_splits(take, bar, dirs, 3, "", 0.5, ValidationSplit(bars=2, fraction=0.25))
+    test_segment = np.flatnonzero(s.novel_perf | s.novel_both | (s.unused & (np.arange(64) >= 48)))
+    assert np.array_equal(test_segment, np.arange(48, 64))  # the final half of "speech"
     assert s.novel_both.any() and s.novel_light.any()
-    masks = np.stack([s.train, s.novel_light, s.novel_perf, s.novel_both])
+    masks = np.stack([s.mask(name) for name in ALL_SPLITS])
     assert np.all(masks.sum(0) == 1)
     assert not np.isin(bar[s.train], s.held_out_bars).any()
+
+
+def _frames_of(s, names) -> set[int]:
+    return set(np.flatnonzero(np.any([s.mask(n) for n in names], axis=0)).tolist())
+
+
+@pytest.mark.parametrize("held_out_fraction", [0.5, 1.0])
+def test_validation_holds_its_own_bars_and_frames_apart_from_the_test(held_out_fraction):
+    dirs = _bar_dirs()
+    take = np.array(["rom"] * 32 + ["speech"] * 32)
+    bar = np.concatenate([np.arange(32), np.arange(32)])
+    s = make_splits(take, bar, dirs, 3, "", held_out_fraction, ValidationSplit(bars=2, fraction=0.25))
+    # Validation's bars: two interior bars, none of the test's, inside the hull of the other bars (of the
+    # training bars where the training performance lights every bar; with the whole take held out for the
+    # test, validation's segment takes the last row of bars from training).
+    assert len(s.val_bars) == 2 and not set(s.val_bars) & set(s.held_out_bars)
+    training_bars = set(bar[s.train].tolist())
+    assert not training_bars & (set(s.val_bars) | set(s.held_out_bars))
+    others = training_bars if held_out_fraction < 1 else set(dirs) - set(s.val_bars + s.held_out_bars)
+    hull = ConvexHull(direction_uv(np.stack([dirs[b] for b in sorted(others)])))
+    for b in s.val_bars + s.held_out_bars:
+        uv = direction_uv(dirs[b][None])[0]
+        assert (hull.equations[:, :2] @ uv + hull.equations[:, 2]).max() < 0
+    # Validation's frames: the 8 frames (a quarter of "speech") just before the test segment.
+    test_start = 64 - int(round(32 * held_out_fraction))
+    val_segment = np.arange(test_start - 8, test_start)
+    assert _frames_of(s, ("val_perf",)) <= set(val_segment.tolist())
+    assert set(val_segment.tolist()) <= _frames_of(s, ("val_perf", "unused"))
+    # Every frame in one split; validation and test share no frame, no bar, and neither trains.
+    assert np.all(np.stack([s.mask(name) for name in ALL_SPLITS]).sum(0) == 1)
+    val, test, train = _frames_of(s, VAL_SPLITS), _frames_of(s, SPLITS), _frames_of(s, ("train",))
+    assert val and test and train and not (val & test) and not (train & (val | test))
+    assert set(bar[sorted(val)].tolist()).isdisjoint(s.held_out_bars)
+    assert set(bar[sorted(test)].tolist()).isdisjoint(s.val_bars)
+    assert not set(range(test_start, 64)) & (val | train)  # the test segment trains nothing, validates nothing
+    assert all(s.mask(name).any() for name in ("val_light", "val_perf", "novel_light", "novel_perf"))
+    assert np.isin(bar[s.val_light], s.val_bars).all() and not s.val_light[test_start - 8:].any()
+    if held_out_fraction == 0.5:
+        assert s.val_segment == "speech[8:16]" and s.held_out_take == "speech[16:]"
+    else:  # the test holds out all of "speech": validation is the end of "rom"
+        assert s.val_segment == "rom[24:32]" and s.held_out_take == "speech"
 
 
 def test_nearest_training_distance_is_to_the_closest_other_training_mesh():

@@ -15,7 +15,7 @@ from safetensors.torch import load_file
 
 from pipeline.testing import run_stage_for_test
 from stages.train import trainer as trainer_mod
-from stages.train.splits import SPLITS
+from stages.train.splits import ALL_SPLITS, HELD_OUT_SPLITS, SPLITS, VAL_SPLITS
 from stages.train.stage import STAGE
 from tests.stages.train.train_synth import SMALL_AVATAR, small_model
 
@@ -50,12 +50,15 @@ def test_stage_outputs_metrics_table_and_models(capture, tmp_path):
     for key in ("iterations", "seconds", "iterations_per_second", "peak_memory_mb"):
         assert metrics[key] > 0
     for model in ("ours", "travatar"):
-        for split in SPLITS:
+        for split in HELD_OUT_SPLITS:  # validation figures beside the test ones
             for name in ("psnr", "mae", "ssim", "lpips"):
                 assert np.isfinite(metrics[f"{model}_{split}_{name}"]), (model, split, name)
     assert metrics["iterations"] == 8 and metrics["travatar_iterations"] == 6
     table = (out / "table.md").read_text()
     assert "novel light" in table and "TRAvatar*" in table
+    for split, title in (("val_light", "validation light"), ("val_perf", "validation performance")):
+        row = next(line for line in table.splitlines() if line.startswith(f"| {title} |"))
+        assert f"{metrics[f'ours_{split}_psnr']:.2f}" in row
     fit_row = next(line for line in table.splitlines() if line.startswith("| training images (fit)"))
     assert f"{metrics['ours_train_psnr']:.2f}" in fit_row and f"{metrics['travatar_train_psnr']:.2f}" in fit_row
     # Expression distances: held-out frames of another take lie further from training than its own spacing.
@@ -76,10 +79,21 @@ def test_stage_outputs_metrics_table_and_models(capture, tmp_path):
     assert len(splits["held_out_bars"]) == 3
     assert all(takes[i] == "speech" for i in splits["novel_perf"] + splits["novel_both"])
     assert not set(splits["train"]) & set(splits["novel_light"] + splits["novel_perf"])
+    # Validation: its own bars and frames (here the end of "rom": the test holds out all of "speech"), in no
+    # other split, and none of them trains.
+    assert len(splits["val_bars"]) == 2 and set(splits["val_bars"]).isdisjoint(splits["held_out_bars"])
+    assert splits["val_segment"].startswith("rom[")
+    frames = [i for name in ALL_SPLITS for i in splits[name]]
+    assert len(frames) == len(set(frames))
+    val = {i for name in VAL_SPLITS for i in splits[name]}
+    assert val and val.isdisjoint(i for name in ("train",) + SPLITS for i in splits[name])
+    lights = {f["index"]: f["light"] for f in manifest["frames"]}
+    assert {lights[i] for i in splits["train"]}.isdisjoint(splits["val_bars"] + splits["held_out_bars"])
     from avatar.io import load_trained
 
     model, meta = load_trained(out / "models" / "travatar")
     assert meta["kind"] == "travatar" and set(meta["held_out_bars"]).isdisjoint(meta["basis_bars"])
+    assert set(meta["val_bars"]) == set(splits["val_bars"]) and set(meta["val_bars"]).isdisjoint(meta["basis_bars"])
     # Novel light per held-out bar: one figure per bar among the split's evaluated images, in the table too.
     for model, name in (("ours", "ours"), ("travatar", "TRAvatar*")):
         by_bar = {int(k.rsplit("_bar", 1)[1]): v for k, v in metrics.items()
