@@ -24,7 +24,7 @@ METRICS = {
     "relight": {"bake_speedup_vs_sum": 120.0, "bake_psnr_vs_sum_db": 38.0},
     "train": {"ours_novel_light_psnr": 33.0, "travatar_novel_light_psnr": 29.0, "ours_novel_light_mae": 0.01,
               "ours_novel_light_psnr_bar13": 31.5, "ours_novel_light_psnr_bar8": 34.5,
-              "travatar_novel_light_psnr_bar8": 29.25, "stage_seconds": 600.0},
+              "travatar_novel_light_psnr_bar8": 29.25, "ours_val_light_psnr": 31.25, "stage_seconds": 600.0},
 }
 
 
@@ -81,6 +81,8 @@ def test_report_holds_every_table_and_verdict(report_dir: Path) -> None:
     assert 'id="paths-relight"' in page and "<td>envmap_studio</td><td>bake</td><td>4</td>" in page
     assert (report_dir / "charts" / "timings.png").is_file()
     assert (report_dir / "charts" / "tradeoff_relight_directions.png").is_file()
+    # Validation apart from the test: its own table, never the headline.
+    assert 'id="validation-table"' in page and "<td>validation light</td><td>31.25</td>" in page
     # The pictures section, captions in words (a figure whose file is missing is left out).
     assert 'id="pictures"' in page
     assert "<figcaption>Novel light: LED bars 8, 13, never lit in training</figcaption>" in page
