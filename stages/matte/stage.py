@@ -58,6 +58,7 @@ from pydantic import Field
 
 from pipeline.devices import DeviceChoice, resolve_device
 from pipeline.stage import Stage, StageContext, StageParams
+from scene.rig import RigConfig, default_rig
 from stages.capture.output import CaptureOutput
 from stages.matte.baseline import BaselineConfig
 from stages.matte.contact_sheet import write_contact_sheet
@@ -83,6 +84,10 @@ class MatteParams(StageParams):
     gate_high: float = Field(0.6, gt=0, le=1, description="Semantic gate: matte kept as is where the dilated semantic foreground is above this.")
     device: DeviceChoice = Field("auto", description="Torch device; 'auto' uses CUDA when present.")
     contact_sheet_frames: int = Field(4, ge=1, description="Frames (rows) shown in the contact sheet.")
+    rig: RigConfig = Field(default_factory=default_rig,
+                           description="The studio rig (injected from configs/rig.yaml, or the subject's rig file): "
+                           "the training data is filmed with its cameras, so the training heads are framed as the "
+                           "capture frames the subject.")
     statistics_frames: int | None = Field(
         None, ge=1, description="Only frames with index below this set the cameras' exposure references and "
         "feed SOC adaptation (None = every frame). Set it so that frames appended to a capture later leave the "
@@ -160,22 +165,20 @@ class CameraInputs:
         return network_input(image, scale, guide, self.reference)
 
 
-def _image_scale(manifest: dict[str, Any]) -> float:
-    from scene.rig import default_rig
-
-    rig = default_rig()
+def _image_scale(manifest: dict[str, Any], rig: RigConfig) -> float:
+    """The capture's image size relative to the rig's sensor (its cameras' reference size)."""
     return round(float(manifest["width"]) / float(rig.width_px), 6)
 
 
 def trained_model(ctx: StageContext, params: MatteParams, image_scale: float, device: str):
     """The supervised model from the shared cache, trained now if missing; returns (model, meta, cached)."""
     payload = {"train": params.train.model_dump(mode="json"), "data": params.data.model_dump(mode="json"),
-               "image_scale": image_scale}
+               "image_scale": image_scale, "rig": params.rig.model_dump(mode="json")}
     key = cache_key(payload, training_code_digest(TRAINING_MODULES))
 
     def train() -> tuple[Any, dict[str, Any]]:
         start = time.perf_counter()
-        jobs = identity_jobs(params.data, image_scale)
+        jobs = identity_jobs(params.data, image_scale, params.rig)
         ctx.log.info("rendering matting training data: %d identities at scale %.4f", len(jobs), image_scale)
         train_set = collect(ctx.executor.map(render_identity, jobs, desc="matte training identities"))
         render_seconds = time.perf_counter() - start
@@ -275,7 +278,7 @@ def run(ctx: StageContext) -> None:
     record: dict[str, Any] = {"method": params.method, "device": device}
     model_dir, model_digest = None, "baseline"
     if params.method == "modnet":
-        image_scale = _image_scale(manifest)
+        image_scale = _image_scale(manifest, params.rig)
         model, meta, cached = trained_model(ctx, params, image_scale, device)
         # model.json holds what decides the mattes (which model, its training and SOC records);
         # timings and whether the model came from the cache go to the metrics only, so a rerun

@@ -15,6 +15,8 @@ from dataclasses import dataclass
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
+from scene.rig import RigConfig
+
 from stages.matte.training import TrainingSet
 
 
@@ -40,6 +42,7 @@ class IdentityJob:
     identity_seed: int
     config: StudioDataConfig
     image_scale: float
+    rig: RigConfig | None = None  # the studio filmed in (the subject's rig); None: configs/rig.yaml
 
 
 @dataclass(frozen=True)
@@ -58,7 +61,8 @@ def render_identity(job: IdentityJob) -> list[Sample]:
     from scene.rig import default_rig
 
     config = job.config
-    rig = default_rig()
+    # The subject's own studio: its cameras frame the training heads as the capture's frame the subject.
+    rig = job.rig if job.rig is not None else default_rig()
     cameras = rig.cameras_at(job.image_scale)
     rng = np.random.default_rng([config.render_seed, job.identity_seed])
     subject = make_subject(f"matte-train-{job.identity_seed}", seed=job.identity_seed)
@@ -97,9 +101,9 @@ def render_identity(job: IdentityJob) -> list[Sample]:
     return samples
 
 
-def identity_jobs(config: StudioDataConfig, image_scale: float) -> list[IdentityJob]:
-    """One job per training identity."""
-    return [IdentityJob(seed, config, image_scale) for seed in config.identity_seeds]
+def identity_jobs(config: StudioDataConfig, image_scale: float, rig: RigConfig | None = None) -> list[IdentityJob]:
+    """One job per training identity, filmed with ``rig`` (None: configs/rig.yaml)."""
+    return [IdentityJob(seed, config, image_scale, rig) for seed in config.identity_seeds]
 
 
 def collect(sample_lists: list[list[Sample]]) -> TrainingSet:
