@@ -39,35 +39,46 @@ def write_exr(path: str | Path, img: np.ndarray, half: bool = True) -> None:
         exr.write(str(path))
 
 
-def read_exr(path: str | Path) -> np.ndarray:
-    """Read an EXR into float32 [H, W, C]: channels R, G, B(, A) in that order, or Y(, A).
+def read_exr_channels(path: str | Path, fix: str = "re-run the stage that writes it") -> dict[str, np.ndarray]:
+    """Every channel of an EXR, name -> pixels [H, W] in the file's own type; ``ValueError`` naming the file.
 
-    Other channel sets come in sorted name order. Raises ``ValueError`` naming the file
-    when it is missing, truncated or not an EXR.
+    ``fix`` says what to do about a missing, truncated or corrupt file.
     """
     import OpenEXR
 
     path = Path(path)
     if not path.is_file():
-        raise ValueError(f"{path}: no such EXR file; check the path or re-run the stage that writes it")
+        raise ValueError(f"{path}: no such EXR file; check the path or {fix}")
     try:
         with OpenEXR.File(str(path), separate_channels=True) as exr:
             channels = {name: np.asarray(ch.pixels) for name, ch in exr.channels().items()}
     except Exception as err:  # OpenEXR raises several exception types for bad files
-        raise ValueError(f"{path}: not a readable EXR image ({err}); the file is corrupt or "
-                         "truncated, re-run the stage that writes it") from err
+        raise ValueError(f"{path}: not a readable EXR image ({err}); the file is corrupt or truncated, {fix}") from err
     if not channels:
-        raise ValueError(f"{path}: EXR has no channels")
+        raise ValueError(f"{path}: EXR has no channels; {fix}")
+    return channels
+
+
+def stack_channels(path: str | Path, channels: dict[str, np.ndarray]) -> np.ndarray:
+    """float32 [H, W, C] of R, G, B(, A) in that order, or Y(, A); other channel sets in sorted name order."""
     if {"R", "G", "B"} <= set(channels):
         order = ["R", "G", "B"] + (["A"] if "A" in channels else [])
     elif "Y" in channels:
         order = ["Y"] + (["A"] if "A" in channels else [])
     else:
         order = sorted(channels)
-    try:
-        return np.stack([channels[n].astype(np.float32) for n in order], axis=-1)
-    except ValueError as err:
-        raise ValueError(f"{path}: EXR channels have different sizes ({err})") from err
+    if len({channels[n].shape for n in order}) != 1:
+        raise ValueError(f"{path}: EXR channels have different sizes")
+    return np.stack([channels[n].astype(np.float32) for n in order], axis=-1)
+
+
+def read_exr(path: str | Path) -> np.ndarray:
+    """Read an EXR into float32 [H, W, C]: channels R, G, B(, A) in that order, or Y(, A).
+
+    Other channel sets come in sorted name order. Raises ``ValueError`` naming the file
+    when it is missing, truncated or not an EXR.
+    """
+    return stack_channels(path, read_exr_channels(path))
 
 
 def write_png8(path: str | Path, image: np.ndarray) -> None:

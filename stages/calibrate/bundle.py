@@ -17,7 +17,7 @@ import numpy as np
 
 from scene.camera import Camera, Rigid
 from stages.calibrate.board import Detection
-from stages.calibrate.sources import COLMAP_PIXEL_OFFSET
+from stages.calibrate.sources import COLMAP_PIXEL_OFFSET, camera_from_colmap
 
 
 @dataclass
@@ -57,22 +57,6 @@ def _colmap_camera(cam: Camera, camera_id: int, model: str, pixel_offset: float 
               "OPENCV": [cam.fx, cam.fy, cx, cy, k1, k2, p1, p2],
               "FULL_OPENCV": [cam.fx, cam.fy, cx, cy, k1, k2, p1, p2, k3, 0.0, 0.0, 0.0]}[model]
     return pycolmap.Camera(model=model, width=cam.width, height=cam.height, camera_id=camera_id, params=params)
-
-
-def _camera_from_colmap(name: str, c, cam_from_rig: Rigid) -> Camera:
-    p = [float(v) for v in c.params]
-    model = c.model.name
-    if model == "SIMPLE_RADIAL":
-        fx = fy = p[0]
-        cx, cy, dist = p[1], p[2], (p[3], 0.0, 0.0, 0.0, 0.0)
-    elif model == "RADIAL":
-        fx = fy = p[0]
-        cx, cy, dist = p[1], p[2], (p[3], p[4], 0.0, 0.0, 0.0)
-    else:  # OPENCV, FULL_OPENCV (whose rational k4..k6 our model lacks: they stay 0 only if unrefined)
-        fx, fy, cx, cy = p[:4]
-        dist = (p[4], p[5], p[6], p[7], p[8] if model == "FULL_OPENCV" else 0.0)
-    return Camera(name=name, width=int(c.width), height=int(c.height), fx=fx, fy=fy, cx=cx, cy=cy,
-                  dist=dist, pose=cam_from_rig, frame="rig")
 
 
 def build_reconstruction(cameras: dict[str, Camera], rig_from_frame: dict[int, Rigid],
@@ -165,7 +149,7 @@ def bundle_adjust(cameras: dict[str, Camera], rig_from_board: dict[int, Rigid],
         rig = rec.rig(1)
         sensor = rec.camera(cid).sensor_id
         cam_from_rig = Rigid.identity() if n == ref else _from_rigid3d(rig.sensor_from_rig(sensor))
-        refined[n] = _camera_from_colmap(n, rec.camera(cid), cam_from_rig)
+        refined[n] = camera_from_colmap(n, rec.camera(cid), cam_from_rig, "rig", pixel_offset=0.0)
     boards = {fid - 1: _from_rigid3d(fr.rig_from_world) for fid, fr in rec.frames.items()}
     ceres = summary.ceres_summary
     brief = (f"{ceres.termination_type.name.lower()} after {ceres.num_successful_steps} steps, "

@@ -78,8 +78,13 @@ def camera_name_of_image(image_name: str) -> str:
     return parts[0] if len(parts) > 1 else Path(image_name).stem
 
 
-def camera_from_colmap(name: str, colmap_camera, cam_from_world: Rigid) -> Camera:
-    """Our camera (OpenCV pixel convention) from a pycolmap camera; ``InputError`` for a model we cannot hold."""
+def camera_from_colmap(name: str, colmap_camera, pose: Rigid, frame: str = "world",
+                       pixel_offset: float = COLMAP_PIXEL_OFFSET) -> Camera:
+    """Our camera (OpenCV pixel convention) from a pycolmap camera; ``InputError`` for a model we cannot hold.
+
+    ``pose`` is ``cam_from_<frame>``; ``pixel_offset`` is subtracted from the principal point
+    (0.5 for a model in COLMAP's convention, 0 for one built in the project's, as the BA's).
+    """
     model = colmap_camera.model.name
     p = [float(v) for v in colmap_camera.params]
     if model not in COLMAP_MODELS:
@@ -104,8 +109,8 @@ def camera_from_colmap(name: str, colmap_camera, cam_from_world: Rigid) -> Camer
             raise InputError(f"COLMAP camera {colmap_camera.camera_id} ({name}): FULL_OPENCV with rational terms "
                              f"k4..k6 = {p[9:12]}; the project's lens model has none (refine with OPENCV instead)")
     return Camera(name=name, width=int(colmap_camera.width), height=int(colmap_camera.height), fx=fx, fy=fy,
-                  cx=cx - COLMAP_PIXEL_OFFSET, cy=cy - COLMAP_PIXEL_OFFSET, dist=dist,  # type: ignore[arg-type]
-                  pose=cam_from_world, frame="world")
+                  cx=cx - pixel_offset, cy=cy - pixel_offset, dist=dist,  # type: ignore[arg-type]
+                  pose=pose, frame=frame)  # type: ignore[arg-type]
 
 
 def _same_pose(a: Rigid, b: Rigid) -> bool:

@@ -376,32 +376,20 @@ def scan_folder(root: str | Path) -> FolderScan:
 def read_capture_image(path: Path) -> np.ndarray:
     """One capture image as float32 [H, W, C] (R, G, B(, A), or Y(, A)); ``ValueError`` saying what to do.
 
-    Reads the file once and keeps the channels' own types, which ``scene.image_io.read_exr``
+    Reads the file once and checks the channels' own types, which ``scene.image_io.read_exr``
     casts away: integer channels are not linear light, so the labeller's brightness would be wrong.
     """
-    import OpenEXR
+    from scene.image_io import read_exr_channels, stack_channels
 
     try:
-        with OpenEXR.File(str(path), separate_channels=True) as exr:
-            channels = {name: np.asarray(ch.pixels) for name, ch in exr.channels().items()}
-    except Exception as err:  # OpenEXR raises several exception types for bad files
-        raise ValueError(f"not a readable EXR image ({err}); the file is corrupt or truncated: "
-                         "export it again from the camera") from err
-    if not channels:
-        raise ValueError("the EXR has no channels: export it again from the camera")
+        channels = read_exr_channels(path, fix="export it again from the camera")
+    except ValueError as err:  # the caller names the file, relative to the capture folder
+        raise ValueError(str(err).removeprefix(f"{path}: ")) from err
     integer = sorted(name for name, pixels in channels.items() if pixels.dtype.kind != "f")
     if integer:
         raise ValueError(f"channel(s) {', '.join(integer)} hold {channels[integer[0]].dtype} values, not linear "
                          "float: export the images as HALF or FLOAT EXR in linear RGB")
-    if {"R", "G", "B"} <= set(channels):
-        order = ["R", "G", "B"] + (["A"] if "A" in channels else [])
-    elif "Y" in channels:
-        order = ["Y"] + (["A"] if "A" in channels else [])
-    else:
-        order = sorted(channels)
-    if len({channels[n].shape for n in order}) != 1:
-        raise ValueError("the EXR's channels have different sizes: export it again from the camera")
-    return np.stack([channels[n].astype(np.float32) for n in order], axis=-1)
+    return stack_channels(path, channels)
 
 
 def image_size_problem(scan: FolderScan, path: Path, shape: tuple[int, ...],
