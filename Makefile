@@ -8,7 +8,7 @@ PY := $(VENV)/bin/python
 PIPELINE := $(VENV)/bin/pipeline
 STAMP := $(VENV)/.installed
 
-.PHONY: install test test-fast subject bench bench-stability report clean
+.PHONY: install test test-fast subject bench bench-stability evaluate-subjects report clean
 
 $(STAMP): pyproject.toml Makefile
 	$(PYTHON) -m venv $(VENV)
@@ -38,6 +38,9 @@ report: $(STAMP)
 
 bench: $(STAMP)
 	$(PY) -m benchmarks.run_all
+
+evaluate-subjects: $(STAMP)
+	$(PY) -m benchmarks.evaluate_subjects --subjects $(or $(N),3)
 
 bench-stability: $(STAMP)
 	$(PY) -m benchmarks.stability
