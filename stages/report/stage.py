@@ -115,26 +115,26 @@ def _targets_section(merged: dict[str, dict[str, float]], charts: Path) -> tuple
     return section, verdicts
 
 
-def _paper_table_section(train: dict[str, float]) -> Section:
-    section = Section("Ours vs TRAvatar* (held-out data, linear RGB)", "paper-table")
-    header = ["split"] + [f"{m} {label}" for m in ("ours", "TRAvatar*") for _, label in MEASURES]
-    table = Table(header, table_id="paper-table")
-    for split, split_label in SPLITS:
+def _splits_table(train: dict[str, float], header: list[str], splits, table_id: str) -> Table:
+    """One row per split: each model's measures."""
+    table = Table(header, table_id=table_id)
+    for split, split_label in splits:
         cells = [split_label]
         for model in ("ours", "travatar"):
             cells += [_fmt(train.get(f"{model}_{split}_{key}")) for key, _ in MEASURES]
         table.add(cells)
-    section.table(table)
+    return table
+
+
+def _paper_table_section(train: dict[str, float]) -> Section:
+    section = Section("Ours vs TRAvatar* (held-out data, linear RGB)", "paper-table")
+    header = ["split"] + [f"{m} {label}" for m in ("ours", "TRAvatar*") for _, label in MEASURES]
+    section.table(_splits_table(train, header, SPLITS, "paper-table"))
     section.paragraph("The test splits of one training run (one draw of the seed): measured once, at the end. "
                       "Predictions for novel lights are scaled to the ground truth's exposure (least squares), "
                       "as in the paper. Higher PSNR/SSIM and lower MAE/LPIPS are better.", "note")
     if any(f"ours_{split}_psnr" in train for split, _ in VAL_SPLITS):
-        val = Table(header, table_id="validation-table")
-        for split, split_label in VAL_SPLITS:
-            cells = [split_label]
-            for model in ("ours", "travatar"):
-                cells += [_fmt(train.get(f"{model}_{split}_{key}")) for key, _ in MEASURES]
-            val.add(cells)
+        val = _splits_table(train, header, VAL_SPLITS, "validation-table")
         section.paragraph("Validation splits (their own held-out bars and frames, disjoint from the test's): every "
                           "automatic choice and every preset setting is made on these, never on the test splits.")
         section.table(val)
