@@ -48,6 +48,7 @@ from scene.envmap import (
     read_envmap,
 )
 from scene.view import ViewSpec
+from stages.relight.sequences import point_light_gain
 
 RenderPath = Literal["bake", "voxel_sum", "network", "none"]
 
@@ -264,8 +265,7 @@ class LookDevSession:
 
     def _point_light(self, state: LookState) -> PointLights:
         position = np.asarray(state.light_head_m, float)
-        r = float(np.linalg.norm(position - np.asarray(self.target_head)))
-        gain = state.light_intensity * (self.settings.falloff_reference_m / max(r, 1e-3)) ** 2
+        gain = point_light_gain(position, self.target_head, state.light_intensity, self.settings.falloff_reference_m)
         return PointLights(position[None], np.full((1, 3), gain))
 
     def _map_lights(self, state: LookState, projection: RotatingProjection) -> PointLights:
@@ -280,9 +280,7 @@ class LookDevSession:
                                f"0 to {self.num_expressions - 1}")
         entry = self.maps.get(state.map_id) if state.map_id else None
         with self._lock, torch.no_grad():
-            start = time.perf_counter()
-            frame = self._render_locked(state, entry, start)
-            return frame
+            return self._render_locked(state, entry, time.perf_counter())
 
     def _render_locked(self, state: LookState, entry: MapEntry | None, start: float) -> LookFrame:
         s = self.settings

@@ -75,6 +75,13 @@ def envmap_sequence(envmap: EnvMap, frames: int, rotate_deg_per_frame: float, vi
     return out
 
 
+def point_light_gain(position: np.ndarray, centre: np.ndarray, intensity: float = 1.0,
+                     falloff_reference_m: float = 1.0) -> float:
+    """A point light's gain on the network's unit light: inverse-square from ``falloff_reference_m``."""
+    r = float(np.linalg.norm(np.asarray(position, float) - np.asarray(centre, float)))
+    return intensity * (falloff_reference_m / max(r, 1e-3)) ** 2
+
+
 def point_light_sequence(positions: np.ndarray, view: ViewSpec, *, intensity: float = 1.0,
                          falloff_reference_m: float = 1.0, mask: BackMask = BackMask(),
                          what: str = "point light") -> list[FrameSpec]:
@@ -89,8 +96,7 @@ def point_light_sequence(positions: np.ndarray, view: ViewSpec, *, intensity: fl
     for i, p in enumerate(np.asarray(positions, float).reshape(-1, 3)):
         if not warned:
             warned = warn_if_behind(p, centre, mask, f"{what} frame {i}")
-        r = float(np.linalg.norm(p - centre))
-        gain = intensity * (falloff_reference_m / max(r, 1e-3)) ** 2
+        gain = point_light_gain(p, centre, intensity, falloff_reference_m)
         out.append(FrameSpec(camera, p[None], np.full((1, 3), gain), 0,
                              {"kind": "point", "position": p.tolist(), "intensity": gain}))
     return out

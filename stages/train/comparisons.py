@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from avatar.metrics import exposure_scale
 from avatar.render import Rays
 from scene.comparison_figure import ComparisonRow, write_comparison_figure
 from stages.capture.output import CaptureOutput
@@ -79,10 +80,8 @@ def write_comparisons(folder: Path, inputs: dict[str, Path], data: TrainData, se
             for kind in heads.kinds:
                 rgb, _ = heads.renderers[kind].render_rays(tensors, [f], [rays])
                 pred = rgb[0].float().cpu()
-                if split in SCALED_SPLITS:
-                    target = torch.as_tensor(truth)
-                    scale = (pred * target).sum() / (pred * pred).sum().clamp(min=1e-12)
-                    pred = pred * scale
+                if split in SCALED_SPLITS:  # the table's least-squares exposure match
+                    pred = pred * exposure_scale(pred[None], torch.as_tensor(truth)[None])[0]
                 predictions[MODEL_LABELS.get(kind, kind)] = pred.numpy()
             rows.append(ComparisonRow(f"frame {index}, {name}, bar {int(data.bar[f])}", truth, predictions,
                                       truth_alpha=matte.matte(name, index)))
