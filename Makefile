@@ -8,7 +8,7 @@ PY := $(VENV)/bin/python
 PIPELINE := $(VENV)/bin/pipeline
 STAMP := $(VENV)/.installed
 
-.PHONY: install test test-fast subject bench bench-stability evaluate-subjects report clean
+.PHONY: install test test-fast subject bench bench-stability evaluate-subjects smoke-paper report clean
 
 $(STAMP): pyproject.toml Makefile
 	$(PYTHON) -m venv $(VENV)
@@ -41,6 +41,9 @@ bench: $(STAMP)
 
 evaluate-subjects: $(STAMP)
 	$(PY) -m benchmarks.evaluate_subjects --subjects $(or $(N),3)
+
+smoke-paper: $(STAMP)
+	$(PY) -m benchmarks.smoke_paper
 
 bench-stability: $(STAMP)
 	$(PY) -m benchmarks.stability

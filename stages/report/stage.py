@@ -30,6 +30,7 @@ from stages.report.capacity import BENCH_PNG as CAPACITY_PNG, capacity_section
 from stages.report.light_oracle import capture_fingerprint, light_oracle_section
 from stages.report.output import ReportOutput
 from stages.report.seeds import seeds_section
+from stages.report.unseen import unseen_subjects_section
 from stages.report.charts import stage_timings_chart, target_ratio_chart, tradeoff_chart
 from stages.report.html import Section, Table, render_document
 from stages.report.targets import TARGETS
@@ -282,6 +283,9 @@ def run(ctx: StageContext) -> None:
     spread = seeds_section(bench[0], ctx.subject) if bench else None
     if spread is not None:
         sections.append(spread)
+    unseen = unseen_subjects_section(bench[0]) if bench else None
+    if unseen is not None:
+        sections.append(unseen)
     oracle = (light_oracle_section(bench[0], ctx.subject, merged["train"], capture_fingerprint(ctx.input("capture")))
               if bench else None)
     if oracle is not None:

@@ -14,13 +14,20 @@ import torch
 
 from avatar.capacity import Capacity
 from avatar.config import AvatarConfig
+from stages.train.assess_images import AssessImages
 from stages.train.data import TrainData
-from stages.train.evaluate import SCALED_SPLITS, coverage_metrics, eval_pairs, image_metrics, psnr_by_bar
+from stages.train.evaluate import (
+    SCALED_SPLITS,
+    coverage_metrics,
+    eval_pairs,
+    image_metrics,
+    psnr_by_bar,
+)
 from stages.train.fit import TrainedHeads
 from stages.train.params import TrainParams
 from stages.train.setup import TrainingSetup
 from stages.train.splits import HELD_OUT_SPLITS, Splits, nearest_training_distance_mm
-from stages.train.trainer import Renderer, TrainTensors
+from stages.train.trainer import Renderer
 
 
 @dataclass
@@ -44,26 +51,26 @@ def assess_heads(heads: TrainedHeads, setup: TrainingSetup, params: TrainParams,
 
     The test splits are only measured here, at the end; nothing reads them to choose anything.
     """
-    tensors, pairs = setup.tensors, setup.pairs
+    tensors, pairs, images = setup.tensors, setup.pairs, setup.assess
     metrics: dict[str, float] = {}
     renders: dict[str, dict[str, torch.Tensor]] = {}
     for kind in heads.kinds:
         renderer = heads.renderers[kind]
         if kind == "ours":
             # On validation images: the figures a pruning setting is judged by, never the test's.
-            metrics.update(_prune_render_figures(renderer, tensors, pairs["val_light"] or pairs["val_perf"]))
+            metrics.update(_prune_render_figures(renderer, images, pairs["val_light"] or pairs["val_perf"]))
         # The fit on training images (seen frames, cameras and lights): next to the held-out
         # figures it tells underfitting (both low) from overfitting (a large gap).
         fit_pairs = eval_pairs(setup.fitted_frames, setup.num_cams, params.eval_images)
-        pred, _ = renderer.render_images(tensors, fit_pairs)
-        metrics[f"{kind}_train_psnr"] = image_metrics(pred, tensors.target_images(fit_pairs), scale=False)["psnr"]
+        pred, _ = images.render(renderer, fit_pairs)
+        metrics[f"{kind}_train_psnr"] = image_metrics(pred, images.targets(fit_pairs), scale=False)["psnr"]
         renders[kind] = {}
         for split in HELD_OUT_SPLITS:
             if not pairs[split]:
                 log.warning("split %s is empty; no metrics for it", split)
                 continue
-            pred, alpha = renderer.render_images(tensors, pairs[split])
-            target = tensors.target_images(pairs[split])
+            pred, alpha = images.render(renderer, pairs[split])
+            target = images.targets(pairs[split])
             scale = split in SCALED_SPLITS
             for name, value in image_metrics(pred, target, scale, lpips).items():
                 metrics[f"{kind}_{split}_{name}"] = value
@@ -77,7 +84,7 @@ def assess_heads(heads: TrainedHeads, setup: TrainingSetup, params: TrainParams,
                                                              + 20.0 * float(np.log10(setup.image_scale)))
             if scale:
                 pred = pred * _scales(pred, target)
-            for name, value in coverage_metrics(pred, alpha, target, tensors.target_mattes(pairs[split])).items():
+            for name, value in coverage_metrics(pred, alpha, target, images.mattes(pairs[split])).items():
                 metrics[f"{kind}_{split}_{name}"] = value
             renders[kind][split] = pred
     return HeldOutResults(metrics=metrics, renders=renders)
@@ -89,10 +96,12 @@ def run_metrics(heads: TrainedHeads, setup: TrainingSetup, data: TrainData, para
     metrics: dict[str, float] = {
         "iterations": ours.iteration, "seconds": heads.training_seconds,
         "iterations_per_second": ours.iteration / max(ours.train_seconds, 1e-9),
-        "train_frames": int(len(setup.train_frames)), "fitted_frames": int(len(setup.fitted_frames)),
+        "train_frames": len(setup.train_frames), "fitted_frames": len(setup.fitted_frames),
         "image_scale": setup.image_scale}
     metrics.update(expression_spread_metrics(data.vertices[:, setup.layout.guide_vertex_ids], setup.splits))
     metrics["image_width_px"] = int(setup.tensors.width)
+    metrics["assess_width_px"] = int(setup.assess.width)
+    metrics["images_memory_mapped"] = int(data.spilled)
     metrics["pruned_primitives"] = heads.renderers["ours"].model.num_pruned
     metrics.update(setup.capacity.as_metrics() if params.capacity == "auto"
                    else _fixed_capacity_metrics(setup.capacity, setup.avatar))
@@ -138,7 +147,7 @@ def _fixed_capacity_metrics(capacity: Capacity, avatar: AvatarConfig) -> dict[st
     return out
 
 
-def _prune_render_figures(renderer: Renderer, t: TrainTensors, pairs: list[tuple[int, int]]) -> dict[str, float]:
+def _prune_render_figures(renderer: Renderer, images: AssessImages, pairs: list[tuple[int, int]]) -> dict[str, float]:
     """Render time per image with and without the pruned primitives, and how much the images differ."""
     model = renderer.model
     pairs = pairs[:4]
@@ -149,13 +158,13 @@ def _prune_render_figures(renderer: Renderer, t: TrainTensors, pairs: list[tuple
     def timed(pruned: bool) -> tuple[torch.Tensor, float]:
         model.prim_keep.copy_(keep if pruned else torch.ones_like(keep))
         start = time.perf_counter()
-        images, _ = renderer.render_images(t, pairs)
-        if images.is_cuda:
+        rgb, _ = images.render(renderer, pairs)
+        if rgb.is_cuda:
             torch.cuda.synchronize()
-        return images, (time.perf_counter() - start) / len(pairs)
+        return rgb, (time.perf_counter() - start) / len(pairs)
 
     try:
-        renderer.render_images(t, pairs[:1])  # warm-up
+        images.render(renderer, pairs[:1])  # warm-up
         # Alternate and keep each one's best time: other load on the machine hits both alike.
         runs = [timed(pruned) for pruned in (True, False, True, False)]
     finally:

@@ -57,8 +57,12 @@ def split_caption(split: str, setup: TrainingSetup) -> str:
 
 
 def write_comparisons(folder: Path, inputs: dict[str, Path], data: TrainData, setup: TrainingSetup,
-                      heads: TrainedHeads, count: int, log: logging.Logger) -> dict[str, str]:
-    """Write one comparison figure per split with evaluation images; returns split -> caption."""
+                      heads: TrainedHeads, count: int, log: logging.Logger, height_px: int = 0) -> dict[str, str]:
+    """Write one comparison figure per split with evaluation images; returns split -> caption.
+
+    ``height_px`` > 0 and under the capture's height renders and shows the images at that height
+    (ground truth and matte area-averaged to it); 0 keeps the capture's size.
+    """
     if count <= 0:
         return {}
     capture, matte = CaptureOutput(inputs["capture"]), MatteOutput(inputs["matte"])
@@ -75,6 +79,11 @@ def write_comparisons(folder: Path, inputs: dict[str, Path], data: TrainData, se
             index, name = int(data.frame_index[f]), data.camera_names[c]
             camera = cams_head[index][name]  # the capture's resolution
             truth = capture.frame(name, index)[..., :3].astype(np.float32) * np.float32(setup.image_scale)
+            truth_alpha = matte.matte(name, index)
+            reduced = 0 < height_px < camera.height
+            if reduced:
+                camera = camera.scaled(height_px / camera.height)
+                truth, truth_alpha = (_area_resized(x, camera.width, camera.height) for x in (truth, truth_alpha))
             rays = Rays.of_camera(camera, tensors.device)
             predictions = {}
             for kind in heads.kinds:
@@ -84,11 +93,12 @@ def write_comparisons(folder: Path, inputs: dict[str, Path], data: TrainData, se
                     pred = pred * exposure_scale(pred[None], torch.as_tensor(truth)[None])[0]
                 predictions[MODEL_LABELS.get(kind, kind)] = pred.numpy()
             rows.append(ComparisonRow(f"frame {index}, {name}, bar {int(data.bar[f])}", truth, predictions,
-                                      truth_alpha=matte.matte(name, index)))
+                                      truth_alpha=truth_alpha))
         caption = split_caption(split, setup)
         h, w = rows[0].truth.shape[:2]
-        write_comparison_figure(folder / f"{split}.png", rows, f"{caption} ({w} x {h} px, the capture's size)")
-        captions[split] = (f"{caption}. Ground truth, each model's render at the capture's {w} x {h} px, and each "
+        size = "reduced from the capture's size" if reduced else "the capture's size"
+        write_comparison_figure(folder / f"{split}.png", rows, f"{caption} ({w} x {h} px, {size})")
+        captions[split] = (f"{caption}. Ground truth, each model's render at {w} x {h} px ({size}), and each "
                            "model's per-pixel error (mean over RGB, as a fraction of the ground truth's white; one "
                            "colour scale per figure)"
                            + (". Predictions scaled to the ground truth's exposure, as in the table" if split in
@@ -96,6 +106,13 @@ def write_comparisons(folder: Path, inputs: dict[str, Path], data: TrainData, se
         log.info("comparison figure %s: %d images", split, len(rows))
     (folder / "captions.json").write_text(json.dumps(captions, indent=1))
     return captions
+
+
+def _area_resized(image: np.ndarray, width: int, height: int) -> np.ndarray:
+    """``image`` [H, W(, C)] area-averaged to ``width`` x ``height`` (what a coarser sensor would record)."""
+    import cv2
+
+    return cv2.resize(np.ascontiguousarray(image, np.float32), (width, height), interpolation=cv2.INTER_AREA)
 
 
 __all__ = ["split_caption", "write_comparisons"]

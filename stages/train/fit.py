@@ -8,20 +8,22 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import torch
 
 from avatar.model import RelightableMVP, count_parameters
 from avatar.raymarch import RaymarchKernel
 from pipeline.stage import Progress
+from stages.train.assess_images import AssessImages
 from stages.train.evaluate import image_metrics
 from stages.train.params import TrainParams
 from stages.train.setup import TrainingSetup
 from stages.train.side_by_side import train_models
-from stages.train.trainer import ModelTrainer, Renderer, TrainState, TrainTensors
+from stages.train.trainer import ModelTrainer, Renderer, TrainState
 
 
 @dataclass
@@ -83,7 +85,7 @@ def fit_heads(setup: TrainingSetup, num_bars: int, params: TrainParams, device: 
             rays_per_image=params.rays_per_image, lr=params.lr, weights=params.loss_weights, seed=params.seed,
             ckpt_path=checkpoints / f"{kind}.pt", checkpoint_every=params.checkpoint_every,
             spike_factor=params.spike_factor, log=log, curve_every=params.curve_every,
-            curve_fn=_curve_psnr(renderer, tensors, setup.curve_pairs) if lead else None, writer=writer,
+            curve_fn=_curve_psnr(renderer, setup.assess, setup.curve_pairs) if lead else None, writer=writer,
             lr_decay_to=params.lr_decay_to, rank=rank, world_size=world_size,
             prune=params.pruning.schedule(iterations), weight_average=params.weight_average)
         parameters[kind] = count_parameters(model)
@@ -102,13 +104,13 @@ def fit_heads(setup: TrainingSetup, num_bars: int, params: TrainParams, device: 
                         training_seconds=training_seconds)
 
 
-def _curve_psnr(renderer: Renderer, tensors: TrainTensors, pairs: list[tuple[int, int]]) -> Callable[[], float]:
+def _curve_psnr(renderer: Renderer, images: AssessImages, pairs: list[tuple[int, int]]) -> Callable[[], float]:
     """The learning curve's measure: the validation-light PSNR of ``pairs`` (NaN without any)."""
 
     def psnr() -> float:
         if not pairs:
             return float("nan")
-        pred, _ = renderer.render_images(tensors, pairs)
-        return image_metrics(pred, tensors.target_images(pairs), scale=True)["psnr"]
+        pred, _ = images.render(renderer, pairs)
+        return image_metrics(pred, images.targets(pairs), scale=True)["psnr"]
 
     return psnr

@@ -68,6 +68,16 @@ class TrainParams(StageParams):
                             "the held-out figures; the layout, light basis and capacity still come from every "
                             "training frame.")
     eval_images: int = Field(12, ge=1, description="Held-out images rendered per split for the metrics.")
+    assess_width_px: int = Field(0, ge=0, description="Width of the images the metrics, the learning curve, the "
+                                 "pruning figures and the previews are measured on (0 = the training images'). A "
+                                 "whole fraction of the training width: each pixel averages a block of training "
+                                 "pixels, rays and targets alike (stages.train.assess_images). Set it only to "
+                                 "assess a large preset on a CPU (make smoke-paper); figures at another width are "
+                                 "not comparable with the training width's.")
+    figure_height_px: int = Field(0, ge=0, description="Height of the comparison figures' images (0 = the "
+                                  "capture's own size, the most detail). Lower it where rendering at the capture's "
+                                  "size is too slow (a 768 x 1024 capture on a CPU); the ground truth is "
+                                  "area-averaged to the same size.")
     lpips: bool = Field(True, description="Compute LPIPS (AlexNet weights from assets/lpips).")
     curve_every: int = Field(100, ge=0, description="Iterations between learning-curve points (0 = none).")
     curve_images: int = Field(3, ge=1, description="Validation-light images per learning-curve point.")

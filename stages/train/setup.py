@@ -18,6 +18,7 @@ from avatar.config import AvatarConfig
 from avatar.layout import GuideLayout, layout_for
 from avatar.travatar import LightBasis
 from pipeline.errors import ConfigError, InputError
+from stages.train.assess_images import AssessImages, assess_factor
 from stages.train.data import TrainData
 from stages.train.evaluate import eval_pairs
 from stages.train.params import TrainParams
@@ -43,6 +44,8 @@ class TrainingSetup:
         num_cams: cameras per frame.
         pairs: the (frame, camera) pairs evaluated per held-out split (``HELD_OUT_SPLITS``).
         curve_pairs: the validation-light pairs of every learning-curve point (never a test split's).
+        assess: the images the metrics, the learning curve and the previews are measured on
+            (``train.assess_width_px``).
     """
 
     splits: Splits
@@ -59,6 +62,7 @@ class TrainingSetup:
     num_cams: int
     pairs: dict[str, list[tuple[int, int]]]
     curve_pairs: list[tuple[int, int]]
+    assess: AssessImages
 
 
 def prepare_training(data: TrainData, params: TrainParams, device: torch.device,
@@ -88,6 +92,7 @@ def prepare_training(data: TrainData, params: TrainParams, device: torch.device,
     mean_mesh = data.vertices[train_frames].mean(0)
     layout = layout_for(avatar, mean_mesh, data.triangles)
     tensors = training_tensors(data, layout.guide_vertex_ids, device)
+    assess = AssessImages(tensors, assess_factor(tensors.width, tensors.height, params.assess_width_px))
     basis_bars = sorted(int(b) for b in np.unique(data.bar[train_frames]))
     fitted_frames = train_frames[:params.fit_frames] if params.fit_frames else train_frames
     basis = LightBasis(np.stack([bar_dirs[b] for b in basis_bars]))
@@ -96,7 +101,7 @@ def prepare_training(data: TrainData, params: TrainParams, device: torch.device,
     return TrainingSetup(splits=splits, train_frames=train_frames, fitted_frames=fitted_frames,
                          image_scale=image_scale, bar_dirs=bar_dirs, capacity=capacity, avatar=avatar,
                          layout=layout, tensors=tensors, basis_bars=basis_bars, basis=basis, num_cams=num_cams,
-                         pairs=pairs, curve_pairs=pairs["val_light"][:params.curve_images])
+                         pairs=pairs, curve_pairs=pairs["val_light"][:params.curve_images], assess=assess)
 
 
 def training_tensors(data: TrainData, guide_ids: np.ndarray, device: torch.device) -> TrainTensors:

@@ -13,6 +13,7 @@ from avatar.capacity import Capacity
 from avatar.config import AvatarConfig
 from avatar.io import save_trained
 from stages.train.assess import HeldOutResults
+from stages.train.assess_images import AssessImages
 from stages.train.data import TrainData
 from stages.train.evaluate import curve_png, results_table
 from stages.train.fit import TrainedHeads
@@ -20,7 +21,6 @@ from stages.train.output import TrainOutput
 from stages.train.params import TrainParams
 from stages.train.setup import TrainingSetup
 from stages.train.splits import ALL_SPLITS, SPLITS, Splits
-from stages.train.trainer import TrainTensors
 
 
 def write_train_outputs(out: TrainOutput, data: TrainData, setup: TrainingSetup, heads: TrainedHeads,
@@ -48,11 +48,12 @@ def write_train_outputs(out: TrainOutput, data: TrainData, setup: TrainingSetup,
     log.info("results (linear RGB; predictions under held-out lights exposure-matched):\n%s", table)
     # Previews of the test splits only, as before the validation split (the report shows them).
     test_pairs = {split: setup.pairs[split] for split in SPLITS}
-    _write_previews(out.previews_dir, setup.tensors, test_pairs, results.renders, params.previews)
+    _write_previews(out.previews_dir, setup.assess, test_pairs, results.renders, params.previews)
     if inputs is not None:  # the capture's full-size images, for the comparison figures
         from stages.train.comparisons import write_comparisons
 
-        write_comparisons(out.comparisons_dir, inputs, data, setup, heads, params.previews, log)
+        write_comparisons(out.comparisons_dir, inputs, data, setup, heads, params.previews, log,
+                          height_px=params.figure_height_px)
 
 
 def _write_splits(path: Path, data: TrainData, splits: Splits) -> None:
@@ -105,13 +106,13 @@ def _write_curve_tradeoff(path: Path, curves: dict[str, list], avatar: AvatarCon
                                 "points": points}, indent=1))
 
 
-def _write_previews(folder: Path, t: TrainTensors, pairs: dict[str, list[tuple[int, int]]],
+def _write_previews(folder: Path, images: AssessImages, pairs: dict[str, list[tuple[int, int]]],
                     renders: dict[str, dict[str, torch.Tensor]], count: int) -> None:
     from scene.image_io import write_png_srgb
 
     folder.mkdir(parents=True, exist_ok=True)
     for split, split_pairs in pairs.items():
         for k in range(min(count, len(split_pairs))):
-            row = [t.target_images([split_pairs[k]])[0]]
+            row = [images.targets([split_pairs[k]])[0]]
             row += [renders[m][split][k] for m in renders if split in renders[m]]
             write_png_srgb(folder / f"{split}_{k}.png", torch.cat(row, 1).clamp(min=0).cpu().numpy())
