@@ -12,8 +12,9 @@ Knobs: ``SEEDS_SUBJECT`` (default alice; a synthetic capture when the subject ha
 inputs), ``SEEDS`` (default ``0,1,2``), ``SEEDS_ITERATIONS`` (default: the preset's),
 ``SEEDS_SET`` (a JSON object of train params laid over the preset's, nested sections merged
 key by key, e.g. ``'{"capacity_rule": {"latent_per_mode": 0}}'`` to train both models at the
-avatar section's latent size instead of the rule's) and ``SEEDS_TAG`` (a name for that
-variant). Writes ``bench-results/seeds_<subject>.json`` (``seeds_<subject>_<tag>.json`` with a
+avatar section's latent size instead of the rule's; ``'{"init_seed": 0}'`` holds the initial weights and
+varies only the ray sampling and latent noise with the seed, ``'{"sampling_seed": 0}'`` the reverse) and
+``SEEDS_TAG`` (a name for that variant). Writes ``bench-results/seeds_<subject>.json`` (``seeds_<subject>_<tag>.json`` with a
 tag) after every seed, so a stopped run keeps the seeds it finished; a later run with the same
 settings reuses the seeds that file already holds and trains only the new ones. A tagged run
 also compares itself with a baseline file's runs of the same seeds and data where there are

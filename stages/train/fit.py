@@ -64,7 +64,7 @@ def fit_heads(setup: TrainingSetup, num_bars: int, params: TrainParams, device: 
               world_size: int = 1) -> TrainedHeads:
     """Build and train every model kind of ``params``; ``checkpoints`` holds ``<kind>.pt`` (resumed if there).
 
-    Each model is initialised from ``params.seed`` right before it is built, so its weights do
+    Each model is initialised from ``params.seed`` (or ``init_seed``) right before it is built, so its weights do
     not depend on what was built before it. Only rank 0 records the learning curve (``writer``
     too, where given).
     """
@@ -75,14 +75,15 @@ def fit_heads(setup: TrainingSetup, num_bars: int, params: TrainParams, device: 
     parameters: dict[str, int] = {}
     for kind in kinds:
         config = avatar if kind == "ours" else avatar.model_copy(update={"light_basis": len(setup.basis_bars)})
-        torch.manual_seed(params.seed)
+        torch.manual_seed(params.seed if params.init_seed is None else params.init_seed)
         model = RelightableMVP(config, setup.layout, num_bars).to(device)
         renderer = renderers[kind] = Renderer(model, kind, setup.basis if kind == "travatar" else None,
                                               setup.basis_bars, kernel=kernel)
         iterations = params.iterations if kind == "ours" else (params.baseline_iterations or params.iterations)
         trainers[kind] = ModelTrainer(
             renderer, tensors, setup.fitted_frames, iterations=iterations, batch_size=params.batch_size,
-            rays_per_image=params.rays_per_image, lr=params.lr, weights=params.loss_weights, seed=params.seed,
+            rays_per_image=params.rays_per_image, lr=params.lr, weights=params.loss_weights,
+            seed=params.seed if params.sampling_seed is None else params.sampling_seed,
             ckpt_path=checkpoints / f"{kind}.pt", checkpoint_every=params.checkpoint_every,
             spike_factor=params.spike_factor, log=log, curve_every=params.curve_every,
             curve_fn=_curve_psnr(renderer, setup.assess, setup.curve_pairs) if lead else None, writer=writer,

@@ -84,6 +84,11 @@ class TrainParams(StageParams):
     checkpoint_every: int = Field(50, ge=1, description="Iterations between checkpoints (resume after a kill).")
     spike_factor: float = Field(10.0, gt=1, description="A loss above this multiple of its running mean rolls back.")
     seed: int = Field(0, description="Seed of initialisation and sampling.")
+    init_seed: int | None = Field(None, description="Seed of the models' initial weights alone (None = seed). With "
+                                  "sampling_seed it separates the two sources of the spread over seeds: vary one, "
+                                  "hold the other (benchmarks/bench_seeds.py).")
+    sampling_seed: int | None = Field(None, description="Seed of the ray sampling and the latent code's noise alone "
+                                      "(None = seed); see init_seed.")
     threads: int = Field(0, ge=0, description="torch CPU threads (0 = torch's default).")
     device: DeviceChoice = Field("auto", description="'auto' (CUDA if present), 'cpu' or 'cuda'.")
     raymarch_kernel: RaymarchKernel = Field(

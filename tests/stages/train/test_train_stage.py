@@ -193,6 +193,17 @@ def test_models_trained_side_by_side_are_the_models_trained_one_after_another(ca
         assert m1[f"travatar_{split}_psnr"] == m2[f"travatar_{split}_psnr"], split
 
 
+def test_init_and_sampling_seeds_each_take_over_their_part_of_seed(capture, tmp_path):
+    params = {**BASE, "iterations": 3, "baseline": False, "lpips": False, "previews": 0, "curve_every": 0}
+    seed0 = run_stage_for_test(STAGE, tmp_path / "a", capture, {**params, "seed": 0})
+    overridden = run_stage_for_test(STAGE, tmp_path / "b", capture,
+                                    {**params, "seed": 5, "init_seed": 0, "sampling_seed": 0})
+    assert_same_models(seed0, overridden, ("ours",))  # both parts of seed 5 replaced: seed 0's run
+    other_sampling = run_stage_for_test(STAGE, tmp_path / "c", capture, {**params, "seed": 0, "sampling_seed": 5})
+    with pytest.raises(AssertionError):
+        assert_same_models(seed0, other_sampling, ("ours",))
+
+
 def test_a_model_failing_side_by_side_stops_the_other_and_both_resume(capture, tmp_path, monkeypatch, caplog):
     params = {**BASE, "iterations": 10, "lpips": False, "curve_every": 0, "parallel_models": 2}
     real_step = trainer_mod.ModelTrainer.step
