@@ -17,20 +17,22 @@ from hardware.studio.sensor import expose
 from scene.camera import Camera
 
 
-def head_travel_px(camera: Camera, vertices_head: np.ndarray, frame: FrameState, next_frame: FrameState,
+def head_travel_px(camera: Camera, vertices_head: np.ndarray, frame: FrameState, other_frame: FrameState,
                    exposure_s: float) -> np.ndarray:
     """How far (dx, dy) pixels the head's visible side moves in ``camera`` over the exposure at ``frame``.
+
+    The velocity is the finite difference to ``other_frame`` (a neighbouring frame, before or after).
 
     The head's vertices ``vertices_head`` [V, 3] are posed rigidly at both frames (the expression's
     own motion is local and left out: one smear for the whole image would misplace it); the
     mean displacement of the half nearer the camera, scaled from the frame interval to the
     exposure, is the travel.
     """
-    dt = float(next_frame.time_s - frame.time_s)
+    dt = float(other_frame.time_s - frame.time_s)
     if exposure_s <= 0 or dt == 0:
         return np.zeros(2)
     now = frame.world_from_head.apply(np.asarray(vertices_head, np.float64))
-    later = next_frame.world_from_head.apply(np.asarray(vertices_head, np.float64))
+    later = other_frame.world_from_head.apply(np.asarray(vertices_head, np.float64))
     uv_now, depth = camera.project(now)
     uv_later, _ = camera.project(later)
     front = depth <= np.median(depth)

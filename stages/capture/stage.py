@@ -195,16 +195,22 @@ def _virtual_capture(ctx: StageContext, params: CaptureParams) -> dict:
     real = {} if effects is None else {"effects": effects, "image_scale": params.image_scale,
                                        "volume_center_m": tuple(rig.head_center_m)}
 
-    def next_frame(i: int):  # the head's motion over the exposure: towards the next frame (the last: the previous)
-        if effects is None or len(performance) < 2:
+    def motion_partner(i: int):
+        """The frame the head's motion over frame i's exposure is taken from: the previous one of the same take
+        (so a longer take leaves every earlier pulse's images, and cache keys, as they were), the next one for
+        a take's first frame; None without a neighbour in the take."""
+        if effects is None:
             return None
-        return performance[i + 1] if i + 1 < len(performance) else performance[i - 1]
+        for j in (i - 1, i + 1):
+            if 0 <= j < len(performance) and performance[j].take == performance[i].take:
+                return performance[j]
+        return None
 
     tasks = [RenderTask(rig=rig, subject_name=ctx.subject, identity_seed=params.identity_seed,
                         texture_size=params.texture_size, settings=settings,
                         cameras=tuple(cam for cam, got in zip(cameras, arrivals[i]) if got),
                         frame=performance[i], light=session.lit_per_pulse[i], half=params.half_float,
-                        next_frame=next_frame(i), **real)
+                        motion_frame=motion_partner(i), **real)
              for i in pulses]
     arrivals_of = [{cam.name: got for cam, got in zip(cameras, arrivals[i]) if got} for i in pulses]
     ctx.log.info("filming %d trigger pulses x %d cameras at %dx%d (%d images lost by the cameras, "

@@ -55,10 +55,10 @@ class RenderTask:
     frame: FrameState
     light: str | int | None  # what the bars showed: "F", a bar id, None = dark
     half: bool
-    # realism "real": the camera model, the next frame (the head's motion over the exposure), the
+    # realism "real": the camera model, a neighbouring frame (the head's motion over the exposure), the
     # cameras' resolution over the native one and the capture volume's centre (the focus); None = ideal.
     effects: CameraEffects | None = None
-    next_frame: FrameState | None = None
+    motion_frame: FrameState | None = None
     image_scale: float = 1.0
     volume_center_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
@@ -69,7 +69,7 @@ def pulse_key(task: RenderTask) -> str:
     real = {} if task.effects is None else {"real": {  # absent when ideal: ideal pulses keep their keys
         "effects": task.effects.model_dump(mode="json"), "image_scale": task.image_scale,
         "volume_center_m": list(task.volume_center_m),
-        "next_frame": None if task.next_frame is None else _frame_json(task.next_frame)}}
+        "motion_frame": None if task.motion_frame is None else _frame_json(task.motion_frame)}}
     return content_key({
         "rig": task.rig.model_dump(mode="json"),
         "subject": [task.subject_name, task.identity_seed, task.texture_size],
@@ -153,8 +153,8 @@ def _film(task: RenderTask, studio: VirtualStudio, cam: Camera, rgb: np.ndarray,
     """
     effects, frame = task.effects, task.frame
     travel = np.zeros(2)
-    if task.next_frame is not None:
-        travel = head_travel_px(cam, studio.geometry(frame).vertices_head, frame, task.next_frame,
+    if task.motion_frame is not None:
+        travel = head_travel_px(cam, studio.geometry(frame).vertices_head, frame, task.motion_frame,
                                 effects.motion.exposure_s)
     head_depth = float(cam.cam_from_world.apply(np.asarray(frame.world_from_head.t, float)[None])[0, 2])
     focus = focus_distance_m(cam, effects.lens, np.asarray(task.volume_center_m, float))
