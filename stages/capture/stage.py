@@ -22,6 +22,13 @@ The virtual studio renders trigger pulses through ``ctx.executor``, one cached i
 The calibration takes are cached per camera and take likewise (``calibration_items_reused``,
 ``calibration_items_computed``; per take ``calibration_board_items_computed``,
 ``calibration_mirror_items_computed``).
+
+``realism: real`` (the default) films through a real camera (``hardware.studio.camera_effects``):
+sensor noise in electrons and DN, vignetting, thin-lens defocus, motion blur, and a ChArUco
+board printed off nominal and bowed; the metrics state the model (``realism_real``,
+``sensor_gain_e_per_dn``, ``read_noise_e``, ``sensor_full_well_e``, ``exposure_s``, ...).
+``realism: ideal`` renders the clean studio of before bit for bit. The mirror-sphere take keeps
+its own ideal sensor either way.
 """
 
 from __future__ import annotations
