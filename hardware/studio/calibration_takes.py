@@ -40,6 +40,8 @@ from pydantic import BaseModel, ConfigDict, Field
 from scipy.ndimage import gaussian_filter
 from scipy.spatial.transform import Rotation
 
+from hardware.studio.camera_effects import CameraEffects
+from hardware.studio.printed_board import PrintedBoard, print_board
 from scene.camera import Camera, Rigid
 from scene.image_io import write_exr
 
@@ -111,6 +113,13 @@ class CalibrationTakeParams(BaseModel):
     roi_highlight_supersample: int = Field(
         8, ge=1, le=64, description="Rays per native pixel per axis on a window's lit pixels (the streak is about "
         "half a native pixel wide).")
+    effects: CameraEffects | None = Field(
+        None, description="The real camera and print (capture.realism: real): the board is printed off nominal "
+        "and bowed, and its images go through the lens and sensor model instead of blur_px, noise and "
+        "white_level; None = the ideal board take. The mirror take is not affected.")
+    board_scale: float = Field(
+        1.0, gt=0, description="Resolution of the board take over the sensors' native one (the real lens's "
+        "residual blur is stated in native pixels); only read with effects.")
 
 
 @dataclass(frozen=True)
@@ -235,6 +244,17 @@ def render_board_image(cam: Camera, world_from_board: Rigid, cfg: CharucoBoardCo
                        margin_px: int, params: CalibrationTakeParams, rng: np.random.Generator,
                        rays: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
     """One board image [H, W, 3] (linear), anti-aliased by supersampling, then blurred and noised."""
+    return _sensor(board_radiance(cam, world_from_board, cfg, tex, margin_px, params, rays), params, rng)
+
+
+def board_radiance(cam: Camera, world_from_board: Rigid, cfg: CharucoBoardConfig, tex: np.ndarray,
+                   margin_px: int, params: CalibrationTakeParams, rays: tuple[np.ndarray, np.ndarray] | None = None,
+                   printed: PrintedBoard | None = None) -> np.ndarray:
+    """The clean radiance [H, W] of one board image, anti-aliased by supersampling (no blur, no noise).
+
+    ``printed``: the physical print (scale error, corner jitter, bow) to render instead of the
+    nominal flat board; ``world_from_board`` stays the nominal board's pose.
+    """
     origin, all_dirs = rays if rays is not None else _supersampled_rays(cam, params.supersample)
     R, t = world_from_board.R, world_from_board.t
     # only the pixels the board (with its white margin) can cover need ray casting
@@ -252,19 +272,30 @@ def render_board_image(cam: Camera, world_from_board: Rigid, cfg: CharucoBoardCo
         dirs = all_dirs[y0:y1, x0:x1]
         normal = R[:, 2]  # board +z, into the board
         denom = dirs @ normal  # [h, w, S]; > 0: the ray meets the printed side
-        dist = ((t - origin) @ normal) / np.where(np.abs(denom) < 1e-12, 1e-12, denom)
+        safe_denom = np.where(np.abs(denom) < 1e-12, 1e-12, denom)
+        dist = ((t - origin) @ normal) / safe_denom
         hit = origin + dist[..., None] * dirs
         p_board = (hit - t) @ R  # [h, w, S, 3]
+        artwork_xy = p_board[..., :2]
+        if printed is not None:
+            # The bowed surface z = h(x, y): intersect the plane z = h at the last hit (h is < 1 mm and
+            # smooth, so two steps converge to ~1e-8 m), then look the artwork up where it was printed.
+            for _ in range(2):
+                lift = printed.surface_z(p_board[..., :2])
+                dist = ((t - origin) @ normal + lift) / safe_denom
+                hit = origin + dist[..., None] * dirs
+                p_board = (hit - t) @ R
+            artwork_xy = printed.nominal_xy(p_board[..., :2])
         px_per_square = (tex.shape[1] - 2 * margin_px) / cfg.squares_x
-        u = margin_px + p_board[..., 0] / cfg.square_m * px_per_square - 0.5
-        v = margin_px + p_board[..., 1] / cfg.square_m * px_per_square - 0.5
+        u = margin_px + artwork_xy[..., 0] / cfg.square_m * px_per_square - 0.5
+        v = margin_px + artwork_xy[..., 1] / cfg.square_m * px_per_square - 0.5
         inside = (dist > 0) & (u >= -0.5) & (v >= -0.5) & (u <= tex.shape[1] - 0.5) & (v <= tex.shape[0] - 0.5)
         albedo = (params.board_albedo_black
                   + (params.board_albedo_white - params.board_albedo_black) * _bilinear(tex, u, v))
         shading = params.exposure * (0.75 + 0.25 * np.abs(denom))  # soft full-on light, a little Lambert
         radiance = np.where(inside & (denom > 0), albedo * shading, np.where(inside, 0.05, params.background))
         clean[y0:y1, x0:x1] = radiance.mean(axis=-1)
-    return _sensor(clean, params, rng)
+    return clean
 
 
 def board_visible(cam: Camera, world_from_board: Rigid, cfg: CharucoBoardConfig, min_corners: int = 6) -> bool:
@@ -536,7 +567,7 @@ def render_mirror_rois(native_cam: Camera, coarse_images: dict[str, np.ndarray],
 
 # Fields of ``CalibrationTakeParams`` that only one of the two takes reads (the rest count for both).
 BOARD_ONLY_FIELDS = frozenset({"poses", "supersample", "volume_half_extent_m", "max_tilt_deg", "board_albedo_white",
-                               "board_albedo_black", "exposure"})
+                               "board_albedo_black", "exposure", "effects", "board_scale"})
 MIRROR_ONLY_FIELDS = frozenset({"mirror_supersample", "highlight_supersample", "bar_radiance", "bar_width_m",
                                 "room_radiance", "mirror_roi", "roi_threshold_sigma", "roi_pad_px",
                                 "roi_coarse_supersample", "roi_highlight_supersample"})
@@ -649,8 +680,9 @@ def plan_calibration_takes(cameras: Sequence[Camera], bars: Sequence[BarLight], 
         draws = (0, 0, 0)
         if with_board:
             items.append(BoardTakeItem(ci, board_cam, poses, board, params))
-            seen = sum(board_visible(board_cam, pose, board) for pose in poses)
-            draws = (int(seen), board_cam.height, board_cam.width)
+            if params.effects is None:  # the real board take draws from its own generators (render_take_item)
+                seen = sum(board_visible(board_cam, pose, board) for pose in poses)
+                draws = (int(seen), board_cam.height, board_cam.width)
         windows = params.mirror_roi and roi_cam.width > mirror_cam.width
         items.append(MirrorTakeItem(ci, mirror_cam, roi_cam if windows else None, sphere_centers, spheres,
                                     tuple(bars), params, draws))
@@ -669,6 +701,27 @@ def _exr_bytes(img: np.ndarray) -> np.ndarray:
         return np.frombuffer(Path(name).read_bytes(), np.uint8)
     finally:
         os.unlink(name)
+
+
+def _real_board_image(item: BoardTakeItem, k: int, tex: np.ndarray, margin: int,
+                      rays: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+    """Board pose ``k`` of ``item`` as the real camera films the real print (``params.effects``).
+
+    Each image has its own noise generator ``[seed, camera_index, 2, k]``, so no other image's
+    draws (nor the mirror take's) depend on it.
+    """
+    from hardware.studio.optics import focus_distance_m
+    from hardware.studio.real_camera import film_board_image
+
+    cam, params, board, effects = item.camera, item.params, item.board, item.params.effects
+    printed = print_board(board.squares_x, board.squares_y, board.square_m, effects.board_print)
+    pose = item.poses[k]
+    clean = board_radiance(cam, pose, board, tex, margin, params, rays, printed)
+    centre_board = np.array([[board.squares_x * board.square_m / 2, board.squares_y * board.square_m / 2, 0.0]])
+    depth = float(cam.cam_from_world.apply(pose.apply(centre_board))[0, 2])
+    focus = focus_distance_m(cam, effects.lens, np.asarray(params.volume_center_m, float))
+    rng = np.random.default_rng([params.seed, item.camera_index, 2, k])
+    return film_board_image(clean, cam, effects, params.board_scale, depth, focus, rng)
 
 
 def render_take_item(item: BoardTakeItem | MirrorTakeItem) -> dict:
@@ -692,7 +745,10 @@ def render_take_item(item: BoardTakeItem | MirrorTakeItem) -> dict:
                 continue
             if rays is None:  # a camera that sees no pose casts no rays
                 rays = _supersampled_rays(cam, params.supersample)
-            img = render_board_image(cam, pose, item.board, tex, margin, params, rng, rays)
+            if params.effects is None:
+                img = render_board_image(cam, pose, item.board, tex, margin, params, rng, rays)
+            else:
+                img = _real_board_image(item, k, tex, margin, rays)
             files[f"charuco/{cam.name}/{k:04d}.exr"] = _exr_bytes(img)
         return {"kind": "board", "camera": cam.name, "files": files, "seconds": time.perf_counter() - start}
     skip_board_noise(rng, item.board_noise_draws, params)
@@ -873,7 +929,7 @@ def render_rig_takes(out_dir: Path, truth_dir: Path, params: CalibrationTakePara
     bars = [BarLight(b.id, b.center_world, b.axis_world, b.length_m, b.intensity, b.normal_world)
             for b in light_bars]
     board, spheres = takes_from_rig(rig)
-    params = params.model_copy(update={"volume_center_m": tuple(rig.head_center_m)})
+    params = params.model_copy(update={"volume_center_m": tuple(rig.head_center_m), "board_scale": board_scale})
     board_cameras = [c for c in rig.cameras_at(board_scale) if camera_names is None or c.name in camera_names]
     render_calibration_takes(cameras, bars, out_dir, truth_dir, params, board, spheres, board_cameras=board_cameras)
     save_cameras(Path(truth_dir) / "cameras.json", cameras)

@@ -13,7 +13,9 @@ it. Per camera:
    samples. Bars are integrated with ``bar_samples`` stratified points per bar and per
    pixel (seeded jitter), each with its own shadow ray (embree occlusion query), the
    near-field ``1 / r^2``, the receiver cosine and the bar's emitter cosine.
-3. Sensor noise (shot + read, seeded by frame and camera) on the linear radiance.
+3. Sensor noise (shot + read, seeded by frame and camera) on the linear radiance: the ideal
+   studio's model. The capture stage's ``realism: real`` renders without it and films the clean
+   image through ``hardware.studio.real_camera`` instead (electrons, DN, lens, motion).
 
 Output is linear HDR RGB (black backdrop) and the exact coverage alpha.
 """

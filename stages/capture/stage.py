@@ -22,16 +22,25 @@ The virtual studio renders trigger pulses through ``ctx.executor``, one cached i
 The calibration takes are cached per camera and take likewise (``calibration_items_reused``,
 ``calibration_items_computed``; per take ``calibration_board_items_computed``,
 ``calibration_mirror_items_computed``).
+
+``realism: real`` (the default) films through a real camera (``hardware.studio.camera_effects``):
+sensor noise in electrons and DN, vignetting, thin-lens defocus, motion blur, and a ChArUco
+board printed off nominal and bowed; the metrics state the model (``realism_real``,
+``sensor_gain_e_per_dn``, ``read_noise_e``, ``sensor_full_well_e``, ``exposure_s``, ...).
+``realism: ideal`` renders the clean studio of before bit for bit. The mirror-sphere take keeps
+its own ideal sensor either way.
 """
 
 from __future__ import annotations
 
 import time
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 from pydantic import Field, field_validator
 
+from hardware.studio.camera_effects import CameraEffects
 from hardware.studio.renderer import RenderSettings
 from pipeline.errors import ConfigError
 from pipeline.stage import Stage, StageContext, StageParams
@@ -60,6 +69,16 @@ class CaptureParams(StageParams):
         default_factory=RenderSettings,
         description="How the virtual studio renders (antialiasing and light samples, sensor noise, their seed); "
         "see hardware.studio.RenderSettings. Ignored when source imports a real capture.")
+    realism: Literal["real", "ideal"] = Field(
+        "real", description="real: the virtual cameras film like real ones (camera_effects: photon and read noise "
+        "in electrons, vignetting, thin-lens defocus, motion blur over the exposure; the ChArUco board printed off "
+        "nominal and bowed), so calibration and the later stages see realistic residuals (ChArUco RMS ~0.05-0.3 "
+        "px). ideal: today's clean studio bit for bit (render.shot_noise_gain / read_noise, a perfect board); set "
+        "it for tests and studies that need clean images. Ignored when source imports a real capture.")
+    camera_effects: CameraEffects = Field(
+        default_factory=CameraEffects,
+        description="The camera, lens, exposure and board print of realism: real (hardware.studio.camera_effects); "
+        "ignored when realism is ideal.")
     head_motion_deg: float = Field(4.0, ge=0, description="Amplitude of the subject's natural head yaw, degrees.")
     rom_pose_seconds: float = Field(0.6, gt=0, description="Duration of one range-of-motion pose, seconds.")
     drop_frames: tuple[int, ...] = Field((), description="Trigger indices whose images every camera loses (simulated drops).")
@@ -179,10 +198,26 @@ def _virtual_capture(ctx: StageContext, params: CaptureParams) -> dict:
         for k, index in enumerate(stream):
             arrivals[index][c] += (k,)
     pulses = [i for i in range(n_frames) if any(arrivals[i])]
+    effects = params.camera_effects if params.realism == "real" else None
+    real = {} if effects is None else {"effects": effects, "image_scale": params.image_scale,
+                                       "volume_center_m": tuple(rig.head_center_m)}
+
+    def motion_partner(i: int):
+        """The frame the head's motion over frame i's exposure is taken from: the previous one of the same take
+        (so a longer take leaves every earlier pulse's images, and cache keys, as they were), the next one for
+        a take's first frame; None without a neighbour in the take."""
+        if effects is None:
+            return None
+        for j in (i - 1, i + 1):
+            if 0 <= j < len(performance) and performance[j].take == performance[i].take:
+                return performance[j]
+        return None
+
     tasks = [RenderTask(rig=rig, subject_name=ctx.subject, identity_seed=params.identity_seed,
                         texture_size=params.texture_size, settings=settings,
                         cameras=tuple(cam for cam, got in zip(cameras, arrivals[i]) if got),
-                        frame=performance[i], light=session.lit_per_pulse[i], half=params.half_float)
+                        frame=performance[i], light=session.lit_per_pulse[i], half=params.half_float,
+                        motion_frame=motion_partner(i), **real)
              for i in pulses]
     arrivals_of = [{cam.name: got for cam, got in zip(cameras, arrivals[i]) if got} for i in pulses]
     ctx.log.info("filming %d trigger pulses x %d cameras at %dx%d (%d images lost by the cameras, "
@@ -229,6 +264,7 @@ def _virtual_capture(ctx: StageContext, params: CaptureParams) -> dict:
         "images_per_second": sum(r["images"] for r in rendered_now) / max(render_s, 1e-9),
         "image_width_px": cameras[0].width, "image_height_px": cameras[0].height,
         "controller_log_entries": len(log_json), **calibration_metrics,
+        "realism_real": int(params.realism == "real"), **params.camera_effects.metrics(),
     }}
 
 
@@ -277,7 +313,9 @@ def _calibration_takes(ctx: StageContext, params: CaptureParams, cameras, truth:
     bars = [BarLight(b.id, b.center_world, b.axis_world, b.length_m, b.intensity) for b in rig.light_bars()]
     take_params = CalibrationTakeParams(poses=params.calibration_poses, seed=params.render.seed,
                                         volume_center_m=tuple(rig.head_center_m),
-                                        mirror_roi=params.calibration_mirror_windows)
+                                        mirror_roi=params.calibration_mirror_windows,
+                                        effects=params.camera_effects if params.realism == "real" else None,
+                                        board_scale=params.calibration_image_scale)
     board_cameras = {c.name: c for c in rig.cameras_at(params.calibration_image_scale)}
     mirror_cameras = None
     if params.calibration_mirror_scale is not None:
@@ -329,6 +367,7 @@ def _write_truth(truth: Path, rig: RigConfig, cameras, subject, performance, lit
         "performance_seed": params.identity_seed if params.performance_seed is None else params.performance_seed,
         "identity_coeffs": subject.identity_coeffs.tolist(), "skin_albedo": subject.skin_albedo.tolist(),
         "iris_albedo": subject.iris_albedo.tolist(), "render_settings": asdict(settings),
+        "realism": params.realism, "camera_effects": params.camera_effects.model_dump(mode="json"),
         "drop_frames": list(params.drop_frames), "controller_missed_pulses": list(params.controller_missed_pulses),
     })
 

@@ -22,12 +22,16 @@ from __future__ import annotations
 import os
 import tempfile
 import time
+import zlib
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
 
 from hardware.studio import FrameState, RenderSettings, VirtualStudio, make_subject
+from hardware.studio.camera_effects import CameraEffects
+from hardware.studio.optics import focus_distance_m
+from hardware.studio.real_camera import film_performance_image, head_travel_px
 from pipeline.itemcache import content_key
 from scene.camera import Camera
 from scene.colour import luminance
@@ -51,23 +55,38 @@ class RenderTask:
     frame: FrameState
     light: str | int | None  # what the bars showed: "F", a bar id, None = dark
     half: bool
+    # realism "real": the camera model, a neighbouring frame (the head's motion over the exposure), the
+    # cameras' resolution over the native one and the capture volume's centre (the focus); None = ideal.
+    effects: CameraEffects | None = None
+    motion_frame: FrameState | None = None
+    image_scale: float = 1.0
+    volume_center_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
 
 def pulse_key(task: RenderTask) -> str:
     """Content digest of everything a pulse's images depend on (the renderer's code aside)."""
     frame = task.frame
+    real = {} if task.effects is None else {"real": {  # absent when ideal: ideal pulses keep their keys
+        "effects": task.effects.model_dump(mode="json"), "image_scale": task.image_scale,
+        "volume_center_m": list(task.volume_center_m),
+        "motion_frame": None if task.motion_frame is None else _frame_json(task.motion_frame)}}
     return content_key({
         "rig": task.rig.model_dump(mode="json"),
         "subject": [task.subject_name, task.identity_seed, task.texture_size],
         "settings": asdict(task.settings),
         "cameras": [cam.to_dict() for cam in task.cameras],
-        "frame": {"index": frame.index, "take": frame.take, "time_s": frame.time_s,
-                  "expression_weights": np.asarray(frame.expression_weights).tolist(),
-                  "world_from_head_R": np.asarray(frame.world_from_head.R).tolist(),
-                  "world_from_head_t": np.asarray(frame.world_from_head.t).tolist()},
+        "frame": _frame_json(frame),
         "light": task.light,
         "half": task.half,
+        **real,
     })
+
+
+def _frame_json(frame: FrameState) -> dict:
+    return {"index": frame.index, "take": frame.take, "time_s": frame.time_s,
+            "expression_weights": np.asarray(frame.expression_weights).tolist(),
+            "world_from_head_R": np.asarray(frame.world_from_head.R).tolist(),
+            "world_from_head_t": np.asarray(frame.world_from_head.t).tolist()}
 
 
 def calibration_item_key(item) -> str:
@@ -113,14 +132,34 @@ def render_task(task: RenderTask) -> dict:
     rays = 0
     exr, mattes, brightness = [], [], []
     for cam in task.cameras:
-        result = studio.render(task.frame, cam, lit)
+        result = studio.render(task.frame, cam, lit, noise=task.effects is None)
         rays += result.rays
-        exr.append(_encoded(write_exr, ".exr", result.rgb, task.half))
-        mattes.append(_encoded(write_png16, ".png", result.alpha))
-        brightness.append(float(luminance(result.rgb).mean()))
+        rgb, alpha = result.rgb, result.alpha
+        if task.effects is not None:
+            rgb, alpha = _film(task, studio, cam, rgb, alpha)
+        exr.append(_encoded(write_exr, ".exr", rgb, task.half))
+        mattes.append(_encoded(write_png16, ".png", alpha))
+        brightness.append(float(luminance(rgb).mean()))
     return {"index": task.frame.index, "cameras": [cam.name for cam in task.cameras], "exr": exr,
             "matte_png": mattes, "brightness": brightness, "rays": rays, "images": len(task.cameras),
             "seconds": time.perf_counter() - start}
+
+
+def _film(task: RenderTask, studio: VirtualStudio, cam: Camera, rgb: np.ndarray, alpha: np.ndarray
+          ) -> tuple[np.ndarray, np.ndarray]:
+    """The clean render of ``cam`` as the real camera records it (``task.effects``).
+
+    The sensor noise is seeded like the ideal model's, by (render seed, frame, camera), with its own stream.
+    """
+    effects, frame = task.effects, task.frame
+    travel = np.zeros(2)
+    if task.motion_frame is not None:
+        travel = head_travel_px(cam, studio.geometry(frame).vertices_head, frame, task.motion_frame,
+                                effects.motion.exposure_s)
+    head_depth = float(cam.cam_from_world.apply(np.asarray(frame.world_from_head.t, float)[None])[0, 2])
+    focus = focus_distance_m(cam, effects.lens, np.asarray(task.volume_center_m, float))
+    rng = np.random.default_rng([task.settings.seed, frame.index, zlib.crc32(cam.name.encode()), 98])
+    return film_performance_image(rgb, alpha, cam, effects, task.image_scale, head_depth, focus, travel, rng)
 
 
 def place_pulse(result: dict, arrivals: dict[str, tuple[int, ...]], received_dir: Path, matte_dir: Path,

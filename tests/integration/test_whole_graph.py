@@ -25,7 +25,8 @@ ROOT = Path(__file__).resolve().parents[2]
 REQUIRED = {
     "sequence": ["olat_angle_mean_deg", "olat_angle_min_deg", "naive_olat_angle_mean_deg",
                  "random_olat_angle_mean_deg"],
-    "capture": ["cameras", "frames", "full_on_frames", "olat_frames", "dropped_frames", "seconds"],
+    "capture": ["cameras", "frames", "full_on_frames", "olat_frames", "dropped_frames", "seconds",
+                "realism_real", "sensor_gain_e_per_dn", "read_noise_e", "sensor_full_well_e", "exposure_s"],
     "calibrate": ["reproj_rms_px", "focal_err_pct_max", "principal_err_px_max", "center_err_mm_max",
                   "rotation_err_deg_max"],
     "lightcal": ["residual_mm_mean", "bar_center_err_mm_mean", "bar_center_err_mm_max"],

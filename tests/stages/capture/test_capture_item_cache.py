@@ -93,10 +93,26 @@ def test_calibration_takes_are_reused_across_reruns_and_recomputed_only_where_th
                                   params={**CALIB, "rig": reprinted, "max_frames": 3})
     assert changed == _files(uncached, ("calib",))  # what the reused mirror items give is what a fresh run gives
 
-    # More board poses: every board take changes, and so does the mirror take of a camera that sees
-    # more poses (its noise is drawn after the board's).
+    # More board poses: every board take changes; under realism real each board image draws its noise from
+    # its own generator, so the mirror takes stay as they were.
     more, metrics = _capture_sharing_cache(tmp_path, "d", seq, {**CALIB, "rig": rig, "max_frames": 3,
                                                                 "calibration_poses": 4})
+    assert _calib_counts(metrics) == (2, 2, 2, 0)
+    assert {k: v for k, v in _files(more, ("calib",)).items() if "charuco" not in k and k != "calib/board.json"} == \
+        {k: v for k, v in calib.items() if "charuco" not in k and k != "calib/board.json"}
+
+
+def test_ideal_mirror_takes_follow_the_board_noise_drawn_before_them(tmp_path):
+    rig = default_rig()
+    rig = rig.model_copy(update={"cameras": rig.cameras[:2]})
+    seq = run_stage_for_test(SEQUENCE, tmp_path / "seq", params={"cycles": 1, "restarts": 1,
+                                                                 "random_baseline_samples": 4})
+    ideal = {**CALIB, "rig": rig, "max_frames": 2, "realism": "ideal"}
+    first, metrics = _capture_sharing_cache(tmp_path, "a", seq, ideal)
+    assert _calib_counts(metrics) == (0, 4, 2, 2)
+    # More board poses: every board take changes, and so does the mirror take of a camera that sees
+    # more poses (its noise is drawn after the board's, from the camera's one generator).
+    more, metrics = _capture_sharing_cache(tmp_path, "d", seq, {**ideal, "calibration_poses": 4})
     seen_more = sum(len(list((more / "calib" / "charuco" / cam).iterdir())) !=
                     len(list((first / "calib" / "charuco" / cam).iterdir())) for cam in ("cam00", "cam01"))
     assert seen_more > 0 and _calib_counts(metrics) == (2 - seen_more, 2 + seen_more, 2, seen_more)

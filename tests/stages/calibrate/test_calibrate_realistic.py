@@ -1,0 +1,34 @@
+"""Calibration under ``capture.realism: real``: a misprinted, bowed board filmed by real cameras.
+
+A real ChArUco calibration leaves 0.05-0.5 px of reprojection RMS (print errors, board
+flatness, noise, defocus); the ideal studio leaves ~0.01 px. The calibration keeps assuming
+the nominal board, so the print's errors land in its residuals.
+"""
+
+from __future__ import annotations
+
+import json
+
+from hardware.studio.calibration_takes import CalibrationTakeParams, render_rig_takes
+from hardware.studio.camera_effects import CameraEffects
+from pipeline.testing import run_stage_for_test
+from stages.calibrate.eval_stage import STAGE as EVAL_STAGE
+from stages.calibrate.stage import STAGE
+
+CAMERAS = ("cam00", "cam01", "cam02")  # neighbours: they share board poses, which chains them
+
+
+def _calibrate(tmp_path, effects):
+    capture, truth = tmp_path / "capture", tmp_path / "truth"
+    render_rig_takes(capture, truth, CalibrationTakeParams(poses=10, seed=3, effects=effects),
+                     camera_names=CAMERAS, bar_ids=(), board_scale=0.5)
+    (capture / "manifest.json").write_text(json.dumps({"cameras": list(CAMERAS), "width": 240, "height": 320}))
+    out = run_stage_for_test(STAGE, tmp_path, inputs={"capture": capture})
+    ev = run_stage_for_test(EVAL_STAGE, tmp_path, inputs={"calibrate": out, "capture.truth": truth})
+    return {**json.loads((out / "metrics.json").read_text()), **json.loads((ev / "metrics.json").read_text())}
+
+
+def test_real_board_take_calibrates_to_a_real_reprojection_rms(tmp_path):
+    metrics = _calibrate(tmp_path, CameraEffects())
+    assert 0.05 <= metrics["reproj_rms_px"] <= 0.5
+    assert metrics["cameras"] == 3 and metrics["cameras_dropped"] == 0
