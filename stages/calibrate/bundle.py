@@ -3,7 +3,7 @@
 The BA model (what pycolmap supports natively): the board is the "world" of the BA, its
 corners are 3D points, either all held at their nominal places (``board_shape`` "nominal":
 the printed metric geometry fixes scale and shape) or refined, one point per corner shared by
-every pose, with three corners held at nominal to fix the gauge (``board_shape`` "refined",
+every pose, with two corners held at nominal to fix the gauge (``board_shape`` "refined",
 ``stages/calibrate/board_shape.py``); every camera is a sensor of one rig (``sensor_from_rig``
 = ``cam_from_rig``, the reference camera's is the identity); every board pose is one frame whose
 ``rig_from_world`` is ``rig_from_board``. Intrinsics (OPENCV model: fx, fy, cx, cy, k1, k2,
@@ -123,11 +123,12 @@ def bundle_adjust(cameras: dict[str, Camera], rig_from_board: dict[int, Rigid],
     """Refine intrinsics, camera-in-rig poses and board poses jointly (pycolmap / Ceres, soft L1).
 
     ``board_shape`` "refined" also refines the board's corners, all but the gauge corners
-    (``gauge_corner_ids``), which stay nominal and keep the board's scale and frame.
+    (``gauge_corner_ids``), which stay nominal and keep the board's scale; the refined board
+    and its poses are then put back on the nominal board's frame (``board_from_refined``).
     """
     import pycolmap
 
-    from stages.calibrate.board_shape import gauge_corner_ids
+    from stages.calibrate.board_shape import board_from_refined, gauge_corner_ids
 
     rec, cam_ids = build_reconstruction(cameras, rig_from_board, detections, None, corners_board, ref, model)
     options = pycolmap.BundleAdjustmentOptions()
@@ -169,6 +170,12 @@ def bundle_adjust(cameras: dict[str, Camera], rig_from_board: dict[int, Rigid],
         refined[n] = camera_from_colmap(n, rec.camera(cid), cam_from_rig, "rig", pixel_offset=0.0)
     boards = {fid - 1: _from_rigid3d(fr.rig_from_world) for fid, fr in rec.frames.items()}
     refined_corners_board = np.array([rec.point3D(pid).xyz for pid in corner_point_ids], dtype=np.float64)
+    if board_shape == "refined":
+        # the roll about the gauge corners' row is free in the BA: the board poses hold it, so
+        # move them with the board onto the nominal frame, which defines the studio world
+        board_from_ba = board_from_refined(refined_corners_board, corners_board)
+        refined_corners_board = board_from_ba.apply(refined_corners_board)
+        boards = {f: rig_from_ba @ board_from_ba.inverse() for f, rig_from_ba in boards.items()}
     ceres = summary.ceres_summary
     brief = (f"{ceres.termination_type.name.lower()} after {ceres.num_successful_steps} steps, "
              f"cost {ceres.initial_cost:.4g} -> {ceres.final_cost:.4g}, {ceres.num_residuals} residuals")

@@ -3,7 +3,7 @@
 Steps: detect corners in every board image (frames that are over-exposed, blurred or
 without a board are skipped with a reason), calibrate each camera with OpenCV, chain
 all cameras and board poses into one frame through shared board frames, refine
-everything jointly in pycolmap (robust BA; the board's corners refined with three held at
+everything jointly in pycolmap (robust BA; the board's corners refined with two held at
 their printed places, which fixes metric scale, or all held there: ``board_shape``), and
 express the result in the studio world: the board's fixture pose (``calib/board.json``) at the reference frame defines it.
 
@@ -67,8 +67,8 @@ class CalibrateParams(StageParams):
         50.0, gt=0, lt=90, description="Board images seen more obliquely than this are dropped (biased corners).")
     board_shape: Literal["nominal", "refined"] = Field(
         "refined", description="The board's corners in the bundle adjustment: 'refined' moves them (one board shared "
-        "by every pose, as cv2.calibrateCameraRO does), holding three corners at nominal (the first row's ends and "
-        "the corner opposite the first; their distances set the scale, which the cameras cannot observe); 'nominal' "
+        "by every pose, as cv2.calibrateCameraRO does), holding the first row's two ends at nominal (their distance "
+        "sets the scale, which the cameras cannot observe); 'nominal' "
         "holds every corner at its printed nominal place. A real print is a little off scale and bows, and with "
         "'nominal' the intrinsics absorb that; choose 'nominal' only for a board whose flatness and print are known "
         "to be much better than the corner detection (then 'refined' adds unknowns for nothing).")
