@@ -1,9 +1,11 @@
 """Joint bundle adjustment of every camera and board pose in pycolmap, and the COLMAP export.
 
 The BA model (what pycolmap supports natively): the board is the "world" of the BA, its
-corners are 3D points held constant (so the board's printed metric geometry fixes scale
-and shape); every camera is a sensor of one rig (``sensor_from_rig`` = ``cam_from_rig``,
-the reference camera's is the identity); every board pose is one frame whose
+corners are 3D points, either all held at their nominal places (``board_shape`` "nominal":
+the printed metric geometry fixes scale and shape) or refined, one point per corner shared by
+every pose, with two corners held at nominal to fix the gauge (``board_shape`` "refined",
+``stages/calibrate/board_shape.py``); every camera is a sensor of one rig (``sensor_from_rig``
+= ``cam_from_rig``, the reference camera's is the identity); every board pose is one frame whose
 ``rig_from_world`` is ``rig_from_board``. Intrinsics (OPENCV model: fx, fy, cx, cy, k1, k2,
 p1, p2 for OPENCV), sensor poses and frame poses are refined with a robust (soft L1) loss.
 """
@@ -26,6 +28,7 @@ class BundleResult:
 
     cameras: dict[str, Camera]  # posed in the rig frame (cam_from_rig)
     rig_from_board: dict[int, Rigid]
+    corners_board: np.ndarray  # [N, 3] the board's corners as the BA ends with them (nominal unless refined)
     initial_cost: float
     final_cost: float
     summary: str
@@ -115,9 +118,17 @@ def build_reconstruction(cameras: dict[str, Camera], rig_from_frame: dict[int, R
 
 def bundle_adjust(cameras: dict[str, Camera], rig_from_board: dict[int, Rigid],
                   detections: dict[str, list[Detection]], corners_board: np.ndarray, ref: str,
-                  loss_scale_px: float, max_iterations: int, model: str) -> BundleResult:
-    """Refine intrinsics, camera-in-rig poses and board poses jointly (pycolmap / Ceres, soft L1)."""
+                  loss_scale_px: float, max_iterations: int, model: str,
+                  board_shape: str = "nominal") -> BundleResult:
+    """Refine intrinsics, camera-in-rig poses and board poses jointly (pycolmap / Ceres, soft L1).
+
+    ``board_shape`` "refined" also refines the board's corners, all but the gauge corners
+    (``gauge_corner_ids``), which stay nominal and keep the board's scale; the refined board
+    and its poses are then put back on the nominal board's frame (``board_from_refined``).
+    """
     import pycolmap
+
+    from stages.calibrate.board_shape import board_from_refined, gauge_corner_ids
 
     rec, cam_ids = build_reconstruction(cameras, rig_from_board, detections, None, corners_board, ref, model)
     options = pycolmap.BundleAdjustmentOptions()
@@ -126,7 +137,7 @@ def bundle_adjust(cameras: dict[str, Camera], rig_from_board: dict[int, Rigid],
     options.refine_extra_params = True
     options.refine_sensor_from_rig = True
     options.refine_rig_from_world = True
-    options.refine_points3D = False
+    options.refine_points3D = board_shape == "refined"
     options.min_track_length = 1
     options.print_summary = False
     options.ceres.loss_function_type = pycolmap.LossFunctionType.SOFT_L1
@@ -139,8 +150,15 @@ def bundle_adjust(cameras: dict[str, Camera], rig_from_board: dict[int, Rigid],
     config = pycolmap.BundleAdjustmentConfig()
     for image_id in rec.images:
         config.add_image(image_id)
-    for pid in rec.point3D_ids():
-        config.add_constant_point(pid)
+    # build_reconstruction adds the board's corners first, in id order: point ids follow corner ids
+    corner_point_ids = sorted(rec.point3D_ids())
+    assert len(corner_point_ids) == len(corners_board)
+    held = range(len(corner_point_ids)) if board_shape == "nominal" else gauge_corner_ids(corners_board)
+    for cid, pid in enumerate(corner_point_ids):
+        if cid in held:
+            config.add_constant_point(pid)
+        else:
+            config.add_variable_point(pid)
     config.fix_gauge(pycolmap.BundleAdjustmentGauge.UNSPECIFIED)
     adjuster = pycolmap.create_default_bundle_adjuster(options, config, rec)
     summary = adjuster.solve()
@@ -151,10 +169,17 @@ def bundle_adjust(cameras: dict[str, Camera], rig_from_board: dict[int, Rigid],
         cam_from_rig = Rigid.identity() if n == ref else _from_rigid3d(rig.sensor_from_rig(sensor))
         refined[n] = camera_from_colmap(n, rec.camera(cid), cam_from_rig, "rig", pixel_offset=0.0)
     boards = {fid - 1: _from_rigid3d(fr.rig_from_world) for fid, fr in rec.frames.items()}
+    refined_corners_board = np.array([rec.point3D(pid).xyz for pid in corner_point_ids], dtype=np.float64)
+    if board_shape == "refined":
+        # the roll about the gauge corners' row is free in the BA: the board poses hold it, so
+        # move them with the board onto the nominal frame, which defines the studio world
+        board_from_ba = board_from_refined(refined_corners_board, corners_board)
+        refined_corners_board = board_from_ba.apply(refined_corners_board)
+        boards = {f: rig_from_ba @ board_from_ba.inverse() for f, rig_from_ba in boards.items()}
     ceres = summary.ceres_summary
     brief = (f"{ceres.termination_type.name.lower()} after {ceres.num_successful_steps} steps, "
              f"cost {ceres.initial_cost:.4g} -> {ceres.final_cost:.4g}, {ceres.num_residuals} residuals")
-    return BundleResult(refined, boards, float(ceres.initial_cost), float(ceres.final_cost), brief)
+    return BundleResult(refined, boards, refined_corners_board, float(ceres.initial_cost), float(ceres.final_cost), brief)
 
 
 def export_colmap(out_dir: Path, cameras_world: dict[str, Camera], detections: dict[str, list[Detection]],

@@ -3,9 +3,9 @@
 Steps: detect corners in every board image (frames that are over-exposed, blurred or
 without a board are skipped with a reason), calibrate each camera with OpenCV, chain
 all cameras and board poses into one frame through shared board frames, refine
-everything jointly in pycolmap (robust BA, board corners held at their printed
-geometry, which fixes metric scale), and express the result in the studio world: the
-board's fixture pose (``calib/board.json``) at the reference frame defines it.
+everything jointly in pycolmap (robust BA; the board's corners refined with two held at
+their printed places, which fixes metric scale, or all held there: ``board_shape``), and
+express the result in the studio world: the board's fixture pose (``calib/board.json``) at the reference frame defines it.
 
 The board take is shot at the cameras' native resolution (as a studio calibrates, whatever
 resolution the performance is later used at); the cameras are calibrated there and
@@ -35,6 +35,9 @@ from stages.calibrate.board import (
     FrameVerdict,
     load_board_spec,
 )
+from stages.calibrate.board_shape import bow_m as board_bow_m
+from stages.calibrate.board_shape import scale_err_pct as board_scale_err_pct
+from stages.calibrate.board_shape import shift_m_max as board_shift_m_max
 from stages.calibrate.bundle import bundle_adjust, export_colmap
 from stages.calibrate.initial import calibrate_intrinsics, chain_poses
 from stages.calibrate.output import CalibrateOutput
@@ -62,6 +65,13 @@ class CalibrateParams(StageParams):
     outlier_frame_px: float = Field(1.0, gt=0, description="A frame whose RMS exceeds this (and 3x the median) is dropped.")
     max_view_angle_deg: float = Field(
         50.0, gt=0, lt=90, description="Board images seen more obliquely than this are dropped (biased corners).")
+    board_shape: Literal["nominal", "refined"] = Field(
+        "refined", description="The board's corners in the bundle adjustment: 'refined' moves them (one board shared "
+        "by every pose, as cv2.calibrateCameraRO does), holding the first row's two ends at nominal (their distance "
+        "sets the scale, which the cameras cannot observe); 'nominal' "
+        "holds every corner at its printed nominal place. A real print is a little off scale and bows, and with "
+        "'nominal' the intrinsics absorb that; choose 'nominal' only for a board whose flatness and print are known "
+        "to be much better than the corner detection (then 'refined' adds unknowns for nothing).")
     loss_scale_px: float = Field(1.0, gt=0, description="Soft-L1 loss scale of the bundle adjustment, pixels.")
     max_iterations: int = Field(100, ge=1, description="Bundle adjustment iterations.")
     reference_frame: int | None = Field(
@@ -171,8 +181,9 @@ def run(ctx: StageContext) -> None:
                          dist=tuple(float(v) for v in intr[n].dist), pose=cam_from_rig[n], frame="rig")  # type: ignore[arg-type]
                for n in names}
     ba = bundle_adjust(initial, rig_from_board, detections, corners_board, ref, params.loss_scale_px,
-                       params.max_iterations, params.camera_model)
+                       params.max_iterations, params.camera_model, params.board_shape)
     ctx.log.info("bundle adjustment: %s", ba.summary)
+    nominal_corners_board, corners_board = corners_board, ba.corners_board
 
     # the studio world: the fixture frame's board pose is known in it
     rig_from_world = ba.rig_from_board[reference_frame] @ spec.world_from_board_reference.inverse()
@@ -202,7 +213,8 @@ def run(ctx: StageContext) -> None:
     out.write_report(
         {"reference_camera": ref, "reference_frame": reference_frame, "dropped_cameras": sorted(problems),
          "calibration_size": list(sizes[names[0]]), "performance_size": list(perf_size) if perf_size else None,
-         "bundle_adjustment": ba.summary, "cameras": report})
+         "bundle_adjustment": ba.summary, "board_shape": params.board_shape,
+         "board_corners_board_m": corners_board.tolist(), "cameras": report})
     res = np.concatenate(all_res)
     # pixels of the board images (the native resolution); cameras.json may be at another
     ctx.metrics["reproj_rms_px"] = float(np.sqrt(np.mean(np.sum(res ** 2, axis=1))))
@@ -214,6 +226,16 @@ def run(ctx: StageContext) -> None:
     ctx.metrics["corners_used"] = len(res)
     ctx.metrics["frames_rejected_quality"] = sum(
         1 for v in verdicts.values() for x in v if not x.used and not x.reason.startswith("board not found"))
+    ctx.metrics.update(_board_shape_metrics(corners_board, nominal_corners_board, params.board_shape))
+
+
+def _board_shape_metrics(corners_board: np.ndarray, nominal_corners_board: np.ndarray, board_shape: str) -> dict:
+    """The refined board against nominal (all 0 under ``board_shape: nominal``); mm and percent."""
+    return {"board_shape_refined": int(board_shape == "refined"),
+            "board_refined_bow_mm": 1000 * board_bow_m(corners_board, nominal_corners_board),
+            "board_refined_shift_mm_max": 1000 * board_shift_m_max(corners_board, nominal_corners_board),
+            "board_refined_scale_err_pct_x": board_scale_err_pct(corners_board, nominal_corners_board, 0),
+            "board_refined_scale_err_pct_y": board_scale_err_pct(corners_board, nominal_corners_board, 1)}
 
 
 def _frame_entry(verdict: FrameVerdict, kept: dict) -> dict:
