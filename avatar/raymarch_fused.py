@@ -8,13 +8,15 @@ the time and memory: no (sample, primitive) pair tensors are built.
 The C++ source is compiled with ``torch.utils.cpp_extension.load`` the first time a process
 needs it (~20 s on 2 cores; needs a C++ compiler) and cached under
 ``$TORCH_EXTENSIONS_DIR`` (default ``~/.cache/torch_extensions``); later processes load the
-cached build in well under a second, and concurrent processes share one build (torch takes
-a file lock). Without a compiler, ``"auto"`` falls back to the PyTorch path with one warning
+cached build in well under a second, and concurrent processes share one build (an OS lock,
+which also clears the file lock a build killed midway leaves behind). Without a compiler, ``"auto"`` falls back to the PyTorch path with one warning
 and ``"fused"`` raises ``FusedKernelUnavailable`` saying what to install.
 """
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import logging
 import os
 import shutil
@@ -38,6 +40,27 @@ class FusedKernelUnavailable(RuntimeError):
     """The fused raymarcher could not be built here (no C++ compiler, or a failed build)."""
 
 
+@contextlib.contextmanager
+def _exclusive_build(build_dir: Path):
+    """Hold an OS lock on ``build_dir`` while building, and clear a lock file a killed build left behind.
+
+    torch's own lock is a plain file (``lock``) that a process killed mid-build never removes, and
+    every later build then waits on it forever. An ``flock`` dies with its process, so while this
+    process holds it no other build of ours is running: a ``lock`` file found then is stale.
+    """
+    build_dir.mkdir(parents=True, exist_ok=True)
+    with open(build_dir / "build.flock", "w") as handle:
+        fcntl.flock(handle, fcntl.LOCK_EX)
+        try:
+            stale = build_dir / "lock"
+            if stale.exists():
+                log.warning("removing %s, left by a build of the fused raymarcher that was killed", stale)
+                stale.unlink(missing_ok=True)
+            yield
+        finally:
+            fcntl.flock(handle, fcntl.LOCK_UN)
+
+
 def _build():
     from torch.utils import cpp_extension
 
@@ -51,8 +74,11 @@ def _build():
             os.environ["PATH"] = ninja.BIN_DIR + os.pathsep + path
         except ImportError:
             pass
+    build_dir = Path(cpp_extension._get_build_directory(EXTENSION_NAME, False))
     try:
-        return cpp_extension.load(name=EXTENSION_NAME, sources=[str(SOURCE)], extra_cflags=["-O3"], verbose=False)
+        with _exclusive_build(build_dir):
+            return cpp_extension.load(name=EXTENSION_NAME, sources=[str(SOURCE)], extra_cflags=["-O3"],
+                                      build_directory=str(build_dir), verbose=False)
     finally:
         os.environ["PATH"] = path
 

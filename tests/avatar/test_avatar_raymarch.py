@@ -250,3 +250,17 @@ def test_fused_kernel_keeps_every_box_of_a_ray_that_crosses_more_than_its_first_
     w = torch.rand_like(a.rgb)
     for x, y in zip(_gradients(a, w, leaves), _gradients(b, w, leaves)):
         torch.testing.assert_close(x, y, rtol=1e-7, atol=1e-10)
+
+
+def test_a_lock_file_left_by_a_killed_build_is_cleared_not_waited_on(tmp_path, caplog):
+    build_dir = tmp_path / "ext"
+    build_dir.mkdir()
+    (build_dir / "lock").touch()  # what torch's file lock leaves when its build is killed
+    with caplog.at_level("WARNING", logger="avatar.raymarch_fused"):
+        with fused._exclusive_build(build_dir):
+            assert not (build_dir / "lock").exists()
+    assert any("killed" in r.getMessage() and "lock" in r.getMessage() for r in caplog.records)
+    caplog.clear()
+    with fused._exclusive_build(build_dir):  # nothing stale: nothing said
+        pass
+    assert not caplog.records
