@@ -82,7 +82,11 @@ def test_charuco_then_colmap_calibration_through_train(studio):
     print("studio6 imported, ChArUco:", json.dumps({k: round(v, 4) for k, v in e.items()}),
           "ours novel light", charuco["train"]["ours_novel_light_psnr"])
     assert e["cameras_compared"] == 6
-    assert e["rotation_err_deg_max"] < 0.1 and e["center_err_mm_max"] < 2.0 and e["focal_err_pct_max"] < 0.2
+    # The board is printed 0.15% / 0.25% oversize (capture.realism: real), which no camera can
+    # observe: the calibrated world is that much too small, about 2.5 mm at the cameras' distance.
+    # So the centres are judged after a similarity fit, and the scale by what the print explains.
+    assert e["rotation_err_deg_max"] < 0.1 and e["center_err_mm_max_aligned"] < 2.0 and e["focal_err_pct_max"] < 0.2
+    assert e["world_alignment_scale_err_pct"] < 0.3
     assert charuco["calibrate_metrics"]["reproj_rms_px"] < 0.1
 
     model = studio["root"] / "studio_colmap"
