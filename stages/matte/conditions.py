@@ -45,7 +45,7 @@ class TrainingConditions(BaseModel):
         "uniformly (0 = sharp).")
 
     @model_validator(mode="after")
-    def _ordered(self) -> "TrainingConditions":
+    def _ordered(self) -> TrainingConditions:
         for name in ("backdrop_level", "exposure_scale", "sensor_noise_scale", "lens_blur_sigma_px"):
             low, high = getattr(self, name)
             if not 0 <= low <= high:
@@ -55,7 +55,7 @@ class TrainingConditions(BaseModel):
         return self
 
     @staticmethod
-    def same_as_capture() -> "TrainingConditions":
+    def same_as_capture() -> TrainingConditions:
         """No gap: a black backdrop, the studio's exposure and sensor, no blur (for studies of the gap itself)."""
         return TrainingConditions(backdrop_level=(0.0, 0.0), exposure_scale=(1.0, 1.0),
                                   sensor_noise_scale=(1.0, 1.0), lens_blur_sigma_px=(0.0, 0.0))
@@ -71,7 +71,7 @@ class IdentityConditions:
     lens_blur_sigma_px: float
 
     @staticmethod
-    def draw(ranges: TrainingConditions, rng: np.random.Generator) -> "IdentityConditions":
+    def draw(ranges: TrainingConditions, rng: np.random.Generator) -> IdentityConditions:
         def log_uniform(low: float, high: float) -> float:
             return float(np.exp(rng.uniform(np.log(low), np.log(high))))
 

@@ -16,7 +16,6 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from scene.rig import RigConfig
-
 from stages.matte.conditions import IdentityConditions, TrainingConditions, film
 from stages.matte.training import TrainingSet
 
@@ -63,7 +62,12 @@ class Sample:
 
 def render_identity(job: IdentityJob) -> list[Sample]:
     """Render one identity's samples (top-level so a process pool can run it)."""
-    from hardware.studio import RenderSettings, VirtualStudio, make_performance, make_subject
+    from hardware.studio import (
+        RenderSettings,
+        VirtualStudio,
+        make_performance,
+        make_subject,
+    )
     from scene.rig import default_rig
 
     config = job.config
