@@ -54,19 +54,13 @@ CPU_REDUCTIONS: dict[str, dict[str, Any]] = {
 CAPTURE = {"width_px": 768, "cameras": 2, "frames_per_take": (27, 9)}
 
 
-def _merged(base: dict, update: dict) -> dict:
-    out = dict(base)
-    for key, value in update.items():
-        out[key] = _merged(out.get(key) or {}, value) if isinstance(value, dict) else value
-    return out
-
-
 def paper_params(stage: str) -> dict[str, Any]:
     """The paper preset's section of ``stage`` with the CPU reductions applied."""
+    from benchmarks.bench_seeds import merge_params
     from pipeline.yamlio import read_yaml_mapping
 
     preset = read_yaml_mapping(ROOT / "configs" / "presets" / "paper.yaml", "configs/presets/paper.yaml")
-    return _merged(dict(preset.get(stage) or {}), CPU_REDUCTIONS.get(stage, {}))
+    return merge_params(dict(preset.get(stage) or {}), CPU_REDUCTIONS.get(stage, {}))
 
 
 def projected_paper_memory(batch: int = 12) -> dict[str, float]:

@@ -74,6 +74,14 @@ class RenderSettings:
         True, description="Trace shadow rays; False gives the unshadowed reference (tests).")
 
 
+def gaussian_sensor_noise(rgb: np.ndarray, shot_noise_gain: float, read_noise: float,
+                          rng: np.random.Generator) -> np.ndarray:
+    """The ideal studio's sensor: Gaussian shot noise (variance ``shot_noise_gain`` per unit of signal) plus
+    read noise (sigma ``read_noise``) on linear ``rgb``, clipped at 0."""
+    sigma = np.sqrt(shot_noise_gain * np.maximum(rgb, 0) + read_noise ** 2)
+    return np.maximum(rgb + sigma * rng.standard_normal(rgb.shape), 0.0)
+
+
 @dataclass
 class RenderResult:
     """One rendered image.
@@ -263,8 +271,7 @@ class VirtualStudio:
         rgb = rgb.reshape(h, w, 3)
         if noise and (self.settings.shot_noise_gain > 0 or self.settings.read_noise > 0):
             rng = np.random.default_rng([self.settings.seed, frame.index, cam_key, 99])
-            sigma = np.sqrt(self.settings.shot_noise_gain * np.maximum(rgb, 0) + self.settings.read_noise ** 2)
-            rgb = np.maximum(rgb + sigma * rng.standard_normal(rgb.shape), 0.0)
+            rgb = gaussian_sensor_noise(rgb, self.settings.shot_noise_gain, self.settings.read_noise, rng)
         return RenderResult(rgb.astype(np.float32), alpha.astype(np.float32), rays)
 
     def render_views(self, frame: FrameState, cameras: Sequence[Camera],

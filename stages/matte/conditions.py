@@ -25,6 +25,8 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 from scipy.ndimage import gaussian_filter
 
+from hardware.studio.renderer import gaussian_sensor_noise
+
 
 class TrainingConditions(BaseModel):
     """Ranges the training identities' studio conditions are drawn from, one draw per identity."""
@@ -93,8 +95,7 @@ def film(rgb: np.ndarray, alpha: np.ndarray, backdrop: float, blur_sigma_px: flo
     if blur_sigma_px > 0:
         image = gaussian_filter(image, (blur_sigma_px, blur_sigma_px, 0))
         alpha = gaussian_filter(alpha, blur_sigma_px)
-    sigma = np.sqrt(shot_noise_gain * np.maximum(image, 0.0) + read_noise ** 2)
-    image = np.maximum(image + sigma * rng.standard_normal(image.shape), 0.0)
+    image = gaussian_sensor_noise(image, shot_noise_gain, read_noise, rng)
     return image.astype(np.float32), np.clip(alpha, 0.0, 1.0).astype(np.float32)
 
 

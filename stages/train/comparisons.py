@@ -28,7 +28,7 @@ from scene.comparison_figure import ComparisonRow, write_comparison_figure
 from stages.capture.output import CaptureOutput
 from stages.matte.output import MatteOutput
 from stages.stabilize.output import StabilizeOutput
-from stages.train.data import TrainData
+from stages.train.data import TrainData, resize_area
 from stages.train.evaluate import SCALED_SPLITS
 from stages.train.fit import TrainedHeads
 from stages.train.setup import TrainingSetup
@@ -83,7 +83,8 @@ def write_comparisons(folder: Path, inputs: dict[str, Path], data: TrainData, se
             reduced = 0 < height_px < camera.height
             if reduced:
                 camera = camera.scaled(height_px / camera.height)
-                truth, truth_alpha = (_area_resized(x, camera.width, camera.height) for x in (truth, truth_alpha))
+                truth, truth_alpha = (resize_area(np.ascontiguousarray(x, np.float32), camera.width, camera.height)
+                                      for x in (truth, truth_alpha))
             rays = Rays.of_camera(camera, tensors.device)
             predictions = {}
             for kind in heads.kinds:
@@ -106,13 +107,6 @@ def write_comparisons(folder: Path, inputs: dict[str, Path], data: TrainData, se
         log.info("comparison figure %s: %d images", split, len(rows))
     (folder / "captions.json").write_text(json.dumps(captions, indent=1))
     return captions
-
-
-def _area_resized(image: np.ndarray, width: int, height: int) -> np.ndarray:
-    """``image`` [H, W(, C)] area-averaged to ``width`` x ``height`` (what a coarser sensor would record)."""
-    import cv2
-
-    return cv2.resize(np.ascontiguousarray(image, np.float32), (width, height), interpolation=cv2.INTER_AREA)
 
 
 __all__ = ["split_caption", "write_comparisons"]

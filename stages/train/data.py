@@ -82,7 +82,8 @@ class TrainData:
         return np.broadcast_to(self.cam_pos_head[frame, camera], dirs.shape).copy(), dirs
 
 
-def _resize(img: np.ndarray, width: int, height: int) -> np.ndarray:
+def resize_area(img: np.ndarray, width: int, height: int) -> np.ndarray:
+    """``img`` [H, W(, C)] area-averaged to ``width`` x ``height`` (what a coarser sensor would record)."""
     import cv2
 
     if img.shape[1] == width and img.shape[0] == height:
@@ -196,8 +197,8 @@ def load_train_data(inputs: dict[str, Path], image_width_px: int, log, max_frame
                 raise stabilize.malformed(stabilize.cameras_head_path, f"frame {idx} has no camera '{name}'")
             img = capture.frame(name, idx)[..., :3]
             alpha = matte.matte(name, idx)
-            images[i, j] = _resize(img, width, height)
-            mattes[i, j] = _resize(alpha, width, height)
+            images[i, j] = resize_area(img, width, height)
+            mattes[i, j] = resize_area(alpha, width, height)
             cam_small = cam.scaled(width / cam.width)
             if cam_intrinsics[j] is None:
                 cam_intrinsics[j] = _intrinsics(cam_small)
