@@ -714,8 +714,8 @@ def _real_board_image(item: BoardTakeItem, k: int, tex: np.ndarray, margin: int,
     from hardware.studio.real_camera import film_board_image
 
     cam, params, board, effects = item.camera, item.params, item.board, item.params.effects
-    printed = print_board(board.squares_x, board.squares_y, board.square_m, effects.board_print)
     pose = item.poses[k]
+    printed = print_board(board.squares_x, board.squares_y, board.square_m, effects.board_print, pose_index=k)
     clean = board_radiance(cam, pose, board, tex, margin, params, rays, printed)
     centre_board = np.array([[board.squares_x * board.square_m / 2, board.squares_y * board.square_m / 2, 0.0]])
     depth = float(cam.cam_from_world.apply(pose.apply(centre_board))[0, 2])

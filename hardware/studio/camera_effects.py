@@ -103,7 +103,13 @@ class BoardPrint(BaseModel):
     bow_m: float = Field(
         8e-4, description="Sagitta of the board's bow: the centre stands this far towards the camera from the "
         "corners (0.5-1 mm for a print laminated on foam core); negative bows away.")
-    seed: int = Field(0, description="Seed of the corner jitter (one physical print).")
+    flex_m: float = Field(
+        3e-4, ge=0, description="Standard deviation, metres, of how much the board's shape changes from pose to "
+        "pose: its bow and a twist (two opposite corners forward, two back), each drawn per pose. A foam-core "
+        "board moved between poses by hand or on a stand sags and twists a few tenths of a millimetre "
+        "differently each time; one refined board shape cannot absorb it, so it stays in the residuals as it "
+        "does in a real calibration. 0 keeps every pose's board the same.")
+    seed: int = Field(0, description="Seed of the corner jitter (one physical print) and of the per-pose flex.")
 
 
 class CameraEffects(BaseModel):
@@ -126,4 +132,5 @@ class CameraEffects(BaseModel):
                 "lens_focal_length_mm": lens.focal_length_mm, "lens_f_number": lens.f_number,
                 "lens_residual_blur_px": lens.residual_blur_px, "vignetting_cos_power": lens.vignetting_cos_power,
                 "board_scale_error_x": p.scale_error[0], "board_scale_error_y": p.scale_error[1],
-                "board_corner_jitter_mm": p.corner_jitter_m * 1e3, "board_bow_mm": p.bow_m * 1e3}
+                "board_corner_jitter_mm": p.corner_jitter_m * 1e3, "board_bow_mm": p.bow_m * 1e3,
+                "board_flex_mm": p.flex_m * 1e3}

@@ -85,9 +85,13 @@ def test_charuco_then_colmap_calibration_through_train(studio):
     # The board is printed 0.15% / 0.25% oversize (capture.realism: real), which no camera can
     # observe: the calibrated world is that much too small, about 2.5 mm at the cameras' distance.
     # So the centres are judged after a similarity fit, and the scale by what the print explains.
-    assert e["rotation_err_deg_max"] < 0.1 and e["center_err_mm_max_aligned"] < 2.0 and e["focal_err_pct_max"] < 0.2
+    # The board also flexes and twists by 0.3 mm from pose to pose (board_print.flex_m), which no
+    # single board shape absorbs: it leaves a real calibration's residuals (0.05-0.5 px) and, with
+    # a few poses a camera, tilts the principal points, so the rotations are judged to 0.5 deg
+    # (0.1 deg before the flex; measured 0.23 deg).
+    assert e["rotation_err_deg_max"] < 0.5 and e["center_err_mm_max_aligned"] < 2.0 and e["focal_err_pct_max"] < 0.2
     assert e["world_alignment_scale_err_pct"] < 0.3
-    assert charuco["calibrate_metrics"]["reproj_rms_px"] < 0.1
+    assert charuco["calibrate_metrics"]["reproj_rms_px"] < 0.5
 
     model = studio["root"] / "studio_colmap"
     shutil.copytree(charuco["calibrate"] / "colmap" / "binary", model)

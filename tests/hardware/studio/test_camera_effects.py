@@ -113,6 +113,7 @@ def test_effects_metrics_are_numbers_with_units_in_the_keys():
     assert all(isinstance(v, (int, float)) for v in metrics.values())
     assert metrics["sensor_gain_e_per_dn"] == 2.5 and metrics["read_noise_e"] == 2.5
     assert metrics["exposure_s"] == 0.008 and metrics["board_bow_mm"] == pytest.approx(0.8)
+    assert metrics["board_flex_mm"] == pytest.approx(0.3)
 
 
 def test_the_true_matte_gets_the_images_blur_but_not_its_noise():
@@ -131,3 +132,28 @@ def test_the_true_matte_gets_the_images_blur_but_not_its_noise():
     assert np.all(out_alpha[100:160, 70:120] > 0.999)  # the inside is untouched: no noise on the matte
     inside = out_rgb[100:160, 70:120, 0]
     assert inside.std() > 0  # but the image is noisy
+
+
+def test_the_board_flexes_differently_in_every_pose_and_the_same_for_every_camera():
+    spec = BoardPrint(bow_m=8e-4, flex_m=3e-4, seed=5)
+    sx, sy, sq = 5, 7, 0.04
+    rest = print_board(sx, sy, sq, spec)
+    assert rest.bow_m == 8e-4 and rest.twist_m == 0.0  # no pose: the print at rest
+    poses = [print_board(sx, sy, sq, spec, pose_index=k) for k in range(400)]
+    # one draw per pose, reproducible (every camera filming pose k renders the same board)
+    again = print_board(sx, sy, sq, spec, pose_index=7)
+    assert (again.bow_m, again.twist_m) == (poses[7].bow_m, poses[7].twist_m)
+    np.testing.assert_array_equal(again.corner_jitter_m, rest.corner_jitter_m)  # the same print in every pose
+    bows = np.array([b.bow_m for b in poses]) - 8e-4
+    twists = np.array([b.twist_m for b in poses])
+    assert bows.std() == pytest.approx(3e-4, rel=0.15) and twists.std() == pytest.approx(3e-4, rel=0.15)
+    assert abs(np.corrcoef(bows, twists)[0, 1]) < 0.2  # two independent modes
+    # the twist lifts two opposite corners and lowers the other two by its amount; the centre stays
+    twisted = print_board(sx, sy, sq, BoardPrint(bow_m=0.0, flex_m=3e-4, seed=5), pose_index=3)
+    corners = np.array([[0, 0], [sx * sq, sy * sq], [sx * sq, 0], [0, sy * sq]], float)
+    z = twisted.surface_z(corners)
+    np.testing.assert_allclose(z, [-twisted.twist_m] * 2 + [twisted.twist_m] * 2, atol=1e-12)
+    assert twisted.surface_z(twisted.center_m[None])[0] == pytest.approx(-twisted.bow_m)
+    # flex 0: every pose is the print at rest
+    still = print_board(sx, sy, sq, BoardPrint(flex_m=0.0), pose_index=3)
+    assert (still.bow_m, still.twist_m) == (BoardPrint().bow_m, 0.0)
