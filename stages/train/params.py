@@ -12,7 +12,7 @@ from avatar.raymarch import RaymarchKernel
 from pipeline.devices import DeviceChoice
 from pipeline.stage import StageParams
 from stages.train.splits import ValidationSplit
-from stages.train.trainer import LossWeights, Pruning
+from stages.train.trainer import ImageOrder, LossWeights, Pruning
 
 
 class TrainParams(StageParams):
@@ -50,6 +50,11 @@ class TrainParams(StageParams):
                                   "tiny preset it cost ours on alice, whose encoder and decoders still move together "
                                   "late in training and no longer match once averaged apart (docs/experiments.md, "
                                   "section 1).")
+    image_order: ImageOrder = Field(
+        "random", description="How each batch's (frame, camera) images are drawn: 'random', uniformly with "
+        "replacement (as before); 'balanced', the next images of a shuffled pass over every training image, so "
+        "each is seen equally often. The ray sampling within an image is the same either way. A candidate against "
+        "the spread over seeds (issue 'stable training'), not adopted until measured on validation over seeds.")
     loss_weights: LossWeights = Field(default_factory=LossWeights,
                                       description="Weights of the loss terms (photometric, guide mesh, volume, KL, "
                                       "matte); see stages.train.trainer.LossWeights.")

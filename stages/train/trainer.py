@@ -26,7 +26,7 @@ import time
 import weakref
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Literal
 
 import numpy as np
 import torch
@@ -40,6 +40,9 @@ from avatar.raymarch import RaymarchKernel, raymarch
 from avatar.render import BasisLights, PointLights, Rays, decode, decode_lights, render
 from avatar.travatar import LightBasis
 from pipeline.workspace import atomic_path
+
+#: How a batch's training images are drawn (``TrainParams.image_order``).
+ImageOrder = Literal["random", "balanced"]
 
 
 class TrainingStopped(RuntimeError):
@@ -273,13 +276,15 @@ class ModelTrainer:
                  ckpt_path: Path, checkpoint_every: int, spike_factor: float, log: logging.Logger,
                  curve_every: int = 0, curve_fn: Callable[[], float] | None = None, writer=None,
                  lr_decay_to: float = 1.0, rank: int = 0, world_size: int = 1,
-                 prune: PruneSchedule | None = None, weight_average: float = 0.0) -> None:
+                 prune: PruneSchedule | None = None, weight_average: float = 0.0,
+                 image_order: ImageOrder = "random") -> None:
         """``rank``/``world_size``: this process's place in an initialised process group (1 = no DDP).
 
         ``batch_size`` is the global batch; with DDP it must divide by ``world_size``.
         ``prune``: when to prune empty primitives (None = never).
         ``weight_average``: decay of an exponential moving average of the parameters, which
         replaces the last iterate at the end of ``run`` (0 = keep the last iterate).
+        ``image_order``: how a batch's (frame, camera) images are drawn (``TrainParams.image_order``).
         """
         if batch_size % world_size:
             raise ValueError(f"batch_size {batch_size} does not divide by {world_size} processes")
@@ -295,6 +300,10 @@ class ModelTrainer:
         self.optim = torch.optim.Adam(self.model.parameters(), lr=lr)
         self.gen = torch.Generator(device="cpu")
         self.gen.manual_seed(seed)
+        if image_order not in ("random", "balanced"):
+            raise ValueError(f"image_order {image_order!r} must be 'random' or 'balanced'")
+        self.image_order, self.order_seed = image_order, int(seed)
+        self._epoch_orders: dict[int, torch.Tensor] = {}
         self.state = TrainState(lr=lr)
         self._good: dict | None = None
         self._ddp_loss: nn.Module | None = None
@@ -403,12 +412,41 @@ class ModelTrainer:
         self._set_lr(self.state.lr)
 
     # ---- one iteration -------------------------------------------------------------------------
+    def epoch_order(self, epoch: int) -> torch.Tensor:
+        """The permutation [F * C] of every (training frame, camera) image in ``epoch`` (``balanced`` order).
+
+        Index q stands for frame ``train_frames[q // C]`` and camera ``q % C``. Drawn from its own
+        generator seeded by (seed, epoch), so it follows from the iteration alone: a resumed or
+        rolled-back run draws the same images without any state in the checkpoint.
+        """
+        if epoch not in self._epoch_orders:
+            if len(self._epoch_orders) > 2:  # a batch spans at most two epochs: keep the few in use
+                self._epoch_orders.pop(min(self._epoch_orders))
+            g = torch.Generator(device="cpu")
+            g.manual_seed(self.order_seed * 1_000_003 + epoch)
+            self._epoch_orders[epoch] = torch.randperm(len(self.train_frames) * self.t.num_cameras, generator=g)
+        return self._epoch_orders[epoch]
+
+    def batch_images(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """Frames [B] and cameras [B] of this iteration's batch.
+
+        ``random``: each drawn uniformly with replacement. ``balanced``: the next B images of a
+        shuffled pass over every training image, so that each is seen equally often (to one
+        visit) however many iterations run.
+        """
+        t, g = self.t, self.gen
+        if self.image_order == "random":
+            pick = torch.randint(len(self.train_frames), (self.batch_size,), generator=g)
+            return torch.as_tensor(self.train_frames)[pick], torch.randint(t.num_cameras, (self.batch_size,), generator=g)
+        count = len(self.train_frames) * t.num_cameras
+        start = self.state.iteration * self.batch_size
+        picks = torch.stack([self.epoch_order(q // count)[q % count] for q in range(start, start + self.batch_size)])
+        return torch.as_tensor(self.train_frames)[picks // t.num_cameras], picks % t.num_cameras
+
     def sample_batch(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Frames [B], cameras [B] and pixel indices [B, R], from the checkpointed generator."""
         t, g = self.t, self.gen
-        pick = torch.randint(len(self.train_frames), (self.batch_size,), generator=g)
-        frames = torch.as_tensor(self.train_frames)[pick]
-        cams = torch.randint(t.num_cameras, (self.batch_size,), generator=g)
+        frames, cams = self.batch_images()
         w = t.sampling_weights(frames, cams)  # [B, H*W]
         pix = torch.multinomial(w, self.rays, replacement=True, generator=g)  # [B, R]
         return frames, cams, pix
