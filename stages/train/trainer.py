@@ -26,7 +26,7 @@ import time
 import weakref
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Literal
+from typing import Callable, Literal, get_args
 
 import numpy as np
 import torch
@@ -300,8 +300,8 @@ class ModelTrainer:
         self.optim = torch.optim.Adam(self.model.parameters(), lr=lr)
         self.gen = torch.Generator(device="cpu")
         self.gen.manual_seed(seed)
-        if image_order not in ("random", "balanced"):
-            raise ValueError(f"image_order {image_order!r} must be 'random' or 'balanced'")
+        if image_order not in get_args(ImageOrder):  # TrainParams checks it too; this is for direct callers
+            raise ValueError(f"image_order {image_order!r} must be one of {get_args(ImageOrder)}")
         self.image_order, self.order_seed = image_order, int(seed)
         self._epoch_orders: dict[int, torch.Tensor] = {}
         self.state = TrainState(lr=lr)
