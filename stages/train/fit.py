@@ -89,7 +89,7 @@ def fit_heads(setup: TrainingSetup, num_bars: int, params: TrainParams, device: 
             curve_fn=_curve_psnr(renderer, setup.assess, setup.curve_pairs) if lead else None, writer=writer,
             lr_decay_to=params.lr_decay_to, rank=rank, world_size=world_size,
             prune=params.pruning.schedule(iterations), weight_average=params.weight_average,
-            image_order=params.image_order)
+            image_order=params.image_order, lr_warmup_iterations=params.lr_warmup_iterations)
         parameters[kind] = count_parameters(model)
         log.info("%s: %d parameters, %d primitives of %d^3 voxels", kind, parameters[kind],
                  config.num_prims, config.voxels_per_side)

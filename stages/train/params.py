@@ -43,6 +43,12 @@ class TrainParams(StageParams):
     lr: float = Field(1e-3, gt=0, description="Adam learning rate (the paper: 1e-4).")
     lr_decay_to: float = Field(0.1, gt=0, le=1, description="Final learning rate as a fraction of lr "
                                "(exponential decay over the run; 1 = constant, as the paper).")
+    lr_warmup_iterations: int = Field(
+        0, ge=0, description="Iterations over which the learning rate ramps linearly from lr / this up to lr, "
+        "before the decay takes over (0 = none, as the paper). Both models alike. A candidate against the spread "
+        "over seeds (issue 'stable training'): Adam's first steps move every weight by about lr at once, so a "
+        "high rate such as tiny's can carry the initial weights' differences far; not adopted until measured "
+        "on validation over seeds.")
     weight_average: float = Field(0.0, ge=0, lt=1, description="Decay per iteration of an exponential moving "
                                   "average of the weights, evaluated and saved instead of the last iterate (0 = "
                                   "the last iterate, as the paper; 0.998 averages over roughly the last 500 "

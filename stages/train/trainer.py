@@ -277,7 +277,7 @@ class ModelTrainer:
                  curve_every: int = 0, curve_fn: Callable[[], float] | None = None, writer=None,
                  lr_decay_to: float = 1.0, rank: int = 0, world_size: int = 1,
                  prune: PruneSchedule | None = None, weight_average: float = 0.0,
-                 image_order: ImageOrder = "random") -> None:
+                 image_order: ImageOrder = "random", lr_warmup_iterations: int = 0) -> None:
         """``rank``/``world_size``: this process's place in an initialised process group (1 = no DDP).
 
         ``batch_size`` is the global batch; with DDP it must divide by ``world_size``.
@@ -285,6 +285,8 @@ class ModelTrainer:
         ``weight_average``: decay of an exponential moving average of the parameters, which
         replaces the last iterate at the end of ``run`` (0 = keep the last iterate).
         ``image_order``: how a batch's (frame, camera) images are drawn (``TrainParams.image_order``).
+        ``lr_warmup_iterations``: the learning rate ramps linearly up to ``lr`` over this many
+        first iterations (0 = none); see ``lr_at``.
         """
         if batch_size % world_size:
             raise ValueError(f"batch_size {batch_size} does not divide by {world_size} processes")
@@ -296,6 +298,9 @@ class ModelTrainer:
         self.weights, self.ckpt_path, self.checkpoint_every = weights, ckpt_path, checkpoint_every
         self.spike_factor, self.log = spike_factor, log
         self.lr_decay_to = lr_decay_to
+        if lr_warmup_iterations < 0:
+            raise ValueError(f"lr_warmup_iterations {lr_warmup_iterations} must be >= 0")
+        self.lr_warmup_iterations = int(lr_warmup_iterations)
         self.curve_every, self.curve_fn, self.writer = curve_every, curve_fn, writer
         self.optim = torch.optim.Adam(self.model.parameters(), lr=lr)
         self.gen = torch.Generator(device="cpu")
@@ -390,6 +395,17 @@ class ModelTrainer:
                                     "averaged": self.averaged})
         self.log.info("%s: resumed at iteration %d", self.r.kind, self.state.iteration)
         return True
+
+    def lr_at(self, iteration: int) -> float:
+        """The learning rate of (0-based) ``iteration``.
+
+        A linear warm-up, (iteration + 1) / ``lr_warmup_iterations`` of the rate, then the
+        exponential decay from ``lr`` to ``lr * lr_decay_to`` over the run. A function of the
+        iteration and the base rate alone (``state.lr``, halved by a rollback), so a resumed run
+        follows the same schedule.
+        """
+        warm = min(1.0, (iteration + 1) / self.lr_warmup_iterations) if self.lr_warmup_iterations else 1.0
+        return self.state.lr * warm * self.lr_decay_to ** (iteration / self.iterations)
 
     def _set_lr(self, lr: float) -> None:
         for group in self.optim.param_groups:
@@ -571,9 +587,7 @@ class ModelTrainer:
                                       f"(last checkpoint at {self.ckpt_path})")
             tick = time.perf_counter()
             self.model.train()
-            # Exponential decay from lr to lr * lr_decay_to over the run (a function of the
-            # iteration only, so a resumed run follows the same schedule).
-            self._set_lr(self.state.lr * self.lr_decay_to ** (self.state.iteration / self.iterations))
+            self._set_lr(self.lr_at(self.state.iteration))
             terms = self.step()
             self.state.iteration += 1
             self.state.train_seconds += time.perf_counter() - tick

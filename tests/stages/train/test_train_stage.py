@@ -123,10 +123,11 @@ def test_rerun_differs_only_in_its_declared_run_records(capture, tmp_path):
     assert (outs[0] / "curve.json").read_bytes() != (outs[1] / "curve.json").read_bytes()
 
 
-@pytest.mark.parametrize("weight_average", [0.0, 0.9])
-def test_resume_after_kill_continues_the_same_run(capture, tmp_path, monkeypatch, caplog, weight_average):
+@pytest.mark.parametrize(("weight_average", "warmup"), [(0.0, 0), (0.9, 0), (0.0, 8)])
+def test_resume_after_kill_continues_the_same_run(capture, tmp_path, monkeypatch, caplog, weight_average, warmup):
+    # warmup 8: the kill and the resume (at iteration 4) fall inside the warm-up.
     params = {**BASE, "iterations": 10, "baseline": False, "lpips": False, "curve_every": 0,
-              "weight_average": weight_average}
+              "weight_average": weight_average, "lr_warmup_iterations": warmup}
     whole = run_stage_for_test(STAGE, tmp_path / "a", capture, params)
 
     calls = {"n": 0}
