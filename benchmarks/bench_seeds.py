@@ -14,7 +14,10 @@ inputs), ``SEEDS`` (default ``0,1,2``), ``SEEDS_ITERATIONS`` (default: the prese
 key by key, e.g. ``'{"capacity_rule": {"latent_per_mode": 0}}'`` to train both models at the
 avatar section's latent size instead of the rule's; ``'{"init_seed": 0}'`` holds the initial weights and
 varies only the ray sampling and latent noise with the seed, ``'{"sampling_seed": 0}'`` the reverse) and
-``SEEDS_TAG`` (a name for that variant). Writes ``bench-results/seeds_<subject>.json`` (``seeds_<subject>_<tag>.json`` with a
+``SEEDS_TAG`` (a name for that variant) and ``SEEDS_CURVE_EVERY`` (default 0: no curve; N: each
+run keeps both models' learning curves, the validation-light PSNR of 3 images every N iterations,
+as ``curve_ours`` and ``curve_travatar``: [iteration, seconds, PSNR] points, to see where in
+training the seeds part; each point renders 3 images, so the training time grows a little). Writes ``bench-results/seeds_<subject>.json`` (``seeds_<subject>_<tag>.json`` with a
 tag) after every seed, so a stopped run keeps the seeds it finished; a later run with the same
 settings reuses the seeds that file already holds and trains only the new ones. A tagged run
 also compares itself with a baseline file's runs of the same seeds and data where there are
@@ -108,8 +111,9 @@ def main() -> dict:
     baseline = _tag("SEEDS_BASELINE")
     preset = tiny_train_params()
     iterations = int(os.environ.get("SEEDS_ITERATIONS", "0")) or int(preset["iterations"])
+    curve_every = int(os.environ.get("SEEDS_CURVE_EVERY", "0"))
     base = merge_params({**preset, "iterations": iterations, "baseline": True, "baseline_iterations": 0,
-                         "lpips": False, "curve_every": 0, "previews": 0}, _overrides())
+                         "lpips": False, "curve_every": curve_every, "previews": 0}, _overrides())
     out = ROOT / "bench-results"
     path = out / (f"seeds_{subject}_{tag}.json" if tag else f"seeds_{subject}.json")
     with tempfile.TemporaryDirectory(prefix="bench-seeds-") as tmp:
@@ -122,9 +126,13 @@ def main() -> dict:
         for seed in seeds:
             if seed in runs:
                 continue
-            m = run_train(inputs, {**base, "seed": seed}, scratch, f"seed{seed}")["metrics"]
+            trained = run_train(inputs, {**base, "seed": seed}, scratch, f"seed{seed}")
+            m = trained["metrics"]
             runs[seed] = {f"{k}_{s}": m[f"{k}_{s}_psnr"] for k in MODELS for s in SPLITS}
             runs[seed]["seconds"] = m["seconds"]  # training wall time, both models
+            for kind, curve in trained.get("curve", {}).items():
+                if curve:
+                    runs[seed][f"curve_{kind}"] = curve
             print(f"seed {seed}: " + ", ".join(f"{s} {runs[seed][f'ours_{s}']:.2f}/{runs[seed][f'travatar_{s}']:.2f}"
                                                 for s in SPLITS) + " (ours/TRAvatar*)", flush=True)
             # Each seed costs minutes: keep it at once, so a stopped run resumes from here.

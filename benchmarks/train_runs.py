@@ -61,14 +61,16 @@ def _train_once(spec: dict) -> dict:
 
     workdir = Path(spec["workdir"])
     out = run_stage_in_folder(STAGE, workdir, {k: Path(v) for k, v in spec["inputs"].items()}, spec["params"])
+    curve_path = TrainOutput(out).curve_path
     return {"metrics": json.loads((out / "metrics.json").read_text()),
-            "capacity": TrainOutput(out).capacity()}
+            "capacity": TrainOutput(out).capacity(),
+            "curve": json.loads(curve_path.read_text()) if curve_path.exists() else {}}
 
 
 def run_train(inputs: dict[str, str], params: dict, scratch: Path, name: str) -> dict:
     """Run the train stage with ``params`` on ``inputs`` in a child process, working in ``scratch/name``.
 
-    Returns ``{"metrics": metrics.json, "capacity": capacity.json}`` of the run; raises
+    Returns ``{"metrics": metrics.json, "capacity": capacity.json, "curve": curve.json}`` of the run; raises
     ``RuntimeError`` with the end of the child's stderr when it fails.
     """
     spec_path = scratch / f"{name}.json"

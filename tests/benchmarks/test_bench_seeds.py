@@ -127,3 +127,35 @@ def test_a_stopped_run_keeps_its_finished_seeds_and_compares_with_a_named_baseli
     monkeypatch.setenv("SEEDS_BASELINE", "../x")
     with pytest.raises(SystemExit, match="SEEDS_BASELINE"):
         bench.main()
+
+
+def test_learning_curves_are_kept_per_seed_when_asked(tmp_path, monkeypatch):
+    """SEEDS_CURVE_EVERY: the runs train with that curve period and keep both models' curves."""
+    import benchmarks.bench_seeds as bench
+
+    (tmp_path / "bench-results").mkdir()
+    monkeypatch.setattr(bench, "ROOT", tmp_path)
+    monkeypatch.setattr(bench, "tiny_train_params", lambda: {"iterations": 10, "lr": 0.003})
+    monkeypatch.setattr(bench, "train_inputs", lambda subject, scratch: ({}, f"workspace {subject}"))
+    periods: list[int] = []
+
+    def fake_train(inputs, params, scratch, name):
+        # Stands in for a real training run: only what the bench keeps of it is tested here.
+        periods.append(params["curve_every"])
+        curve = [[0, 0.0, 10.0], [5, 1.0, 20.0 + params["seed"]]] if params["curve_every"] else []
+        return {"metrics": {"seconds": 1.0, **{f"{m}_{s}_psnr": 25.0 for m in bench.MODELS for s in bench.SPLITS}},
+                "curve": {"ours": curve, "travatar": curve}}
+
+    monkeypatch.setattr(bench, "run_train", fake_train)
+    monkeypatch.setenv("SEEDS_SUBJECT", "bob")
+    monkeypatch.setenv("SEEDS", "0,1")
+    monkeypatch.setenv("SEEDS_TAG", "curves")
+    monkeypatch.setenv("SEEDS_CURVE_EVERY", "5")
+    results = bench.main()
+    assert periods == [5, 5]
+    assert results["runs"]["1"]["curve_ours"] == [[0, 0.0, 10.0], [5, 1.0, 21.0]]
+    assert results["runs"]["0"]["curve_travatar"][-1][2] == 20.0
+    monkeypatch.setenv("SEEDS_TAG", "nocurves")
+    monkeypatch.delenv("SEEDS_CURVE_EVERY")
+    results = bench.main()
+    assert periods[2:] == [0, 0] and "curve_ours" not in results["runs"]["0"]
