@@ -14,7 +14,7 @@ Reports, in ``bench-results/unseen_subjects.json`` and a table on stdout:
 - per subject, ours against TRAvatar* on the validation and the test splits.
 
 Usage: ``python -m benchmarks.evaluate_subjects [--subjects 3] [--first 0] [--preset tiny]``.
-About 9 minutes a subject on a 2-core CPU (``tiny``).
+11 to 13 minutes a subject on a 2-core CPU (``tiny``, the realistic studio).
 """
 
 from __future__ import annotations
