@@ -77,16 +77,22 @@ def test_a_variant_is_compared_with_the_default_on_the_seeds_both_hold(tmp_path)
     assert _default_runs(tmp_path / "none.json", "workspace bob") == (None, {})
 
 
-def test_a_stopped_run_keeps_its_finished_seeds_and_compares_with_a_named_baseline(tmp_path, monkeypatch):
-    """Each seed is written as soon as it is trained; a rerun trains only the missing ones."""
-    import json
-
+def _bench_in(tmp_path, monkeypatch):
+    """The bench module writing under ``tmp_path``, with a 10-iteration preset and a named workspace as data."""
     import benchmarks.bench_seeds as bench
 
     (tmp_path / "bench-results").mkdir()
     monkeypatch.setattr(bench, "ROOT", tmp_path)
     monkeypatch.setattr(bench, "tiny_train_params", lambda: {"iterations": 10, "lr": 0.003})
     monkeypatch.setattr(bench, "train_inputs", lambda subject, scratch: ({}, f"workspace {subject}"))
+    return bench
+
+
+def test_a_stopped_run_keeps_its_finished_seeds_and_compares_with_a_named_baseline(tmp_path, monkeypatch):
+    """Each seed is written as soon as it is trained; a rerun trains only the missing ones."""
+    import json
+
+    bench = _bench_in(tmp_path, monkeypatch)
     trained: list[int] = []
     stop_at = {1}  # the user stops the first bench during seed 1
 
@@ -131,12 +137,7 @@ def test_a_stopped_run_keeps_its_finished_seeds_and_compares_with_a_named_baseli
 
 def test_learning_curves_are_kept_per_seed_when_asked(tmp_path, monkeypatch):
     """SEEDS_CURVE_EVERY: the runs train with that curve period and keep both models' curves."""
-    import benchmarks.bench_seeds as bench
-
-    (tmp_path / "bench-results").mkdir()
-    monkeypatch.setattr(bench, "ROOT", tmp_path)
-    monkeypatch.setattr(bench, "tiny_train_params", lambda: {"iterations": 10, "lr": 0.003})
-    monkeypatch.setattr(bench, "train_inputs", lambda subject, scratch: ({}, f"workspace {subject}"))
+    bench = _bench_in(tmp_path, monkeypatch)
     periods: list[int] = []
 
     def fake_train(inputs, params, scratch, name):

@@ -10,16 +10,6 @@ import pytest
 import torch
 
 from stages.train import trainer as trainer_mod
-from stages.train.data import load_train_data
-from tests.stages.train.train_synth import make_capture, small_model
-
-
-@pytest.fixture(scope="module")
-def tensors_and_renderer(tmp_path_factory):
-    capture = make_capture(tmp_path_factory.mktemp("synth"), width_px=24, cameras=3, frames_per_take=(5, 4))
-    data = load_train_data(capture, 16, logging.getLogger("test"))
-    _, tensors, _, renderer = small_model(data)
-    return tensors, renderer
 
 
 def _trainer(tensors_and_renderer, tmp_path, order: str, train_frames: np.ndarray, batch: int = 4, seed: int = 3):

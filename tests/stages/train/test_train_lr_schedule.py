@@ -9,18 +9,9 @@ import pytest
 
 from pipeline.testing import run_stage_for_test
 from stages.train import trainer as trainer_mod
-from stages.train.data import load_train_data
 from stages.train.stage import STAGE
 from tests.stages.train.test_train_stage import BASE
-from tests.stages.train.train_synth import make_capture, small_model
-
-
-@pytest.fixture(scope="module")
-def tensors_and_renderer(tmp_path_factory):
-    capture = make_capture(tmp_path_factory.mktemp("synth"), width_px=24, cameras=3, frames_per_take=(5, 4))
-    data = load_train_data(capture, 16, logging.getLogger("test"))
-    _, tensors, _, renderer = small_model(data)
-    return tensors, renderer
+from tests.stages.train.train_synth import make_capture
 
 
 def _trainer(tensors_and_renderer, tmp_path, warmup: int, lr_decay_to: float = 0.1):
