@@ -61,10 +61,10 @@ def _train_once(spec: dict) -> dict:
 
     workdir = Path(spec["workdir"])
     out = run_stage_in_folder(STAGE, workdir, {k: Path(v) for k, v in spec["inputs"].items()}, spec["params"])
-    curve_path = TrainOutput(out).curve_path
+    output = TrainOutput(out)
     return {"metrics": json.loads((out / "metrics.json").read_text()),
-            "capacity": TrainOutput(out).capacity(),
-            "curve": json.loads(curve_path.read_text()) if curve_path.exists() else {}}
+            "capacity": output.capacity(),
+            "curve": json.loads(output.curve_path.read_text()) if output.curve_path.exists() else {}}
 
 
 def run_train(inputs: dict[str, str], params: dict, scratch: Path, name: str) -> dict:
