@@ -50,7 +50,7 @@ class AvatarConfig(BaseModel):
     untied_bias: bool = Field(False, description="Every transposed conv of the decoder branches also adds a learnt "
                               "bias per output pixel (MVP's untied biases): each texel's static colour and opacity "
                               "is a parameter of its own. Both models alike. Off by default: on the tiny preset it "
-                              "raised the baseline more than ours (docs/experiments.md, section 1).")
+                              "lowered ours on validation on every seed measured (docs/experiments.md, section 25).")
     light_basis: int = Field(0, description="TRAvatar*: number of training lights in the fixed one-hot light basis (0 = ours).")
 
     @model_validator(mode="after")
