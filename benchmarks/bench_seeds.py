@@ -24,8 +24,9 @@ also compares itself with a baseline file's runs of the same seeds and data wher
 any (at the iterations each was run with; both are printed): variant - baseline per model and
 split, paired by seed, with the same 95% interval (``against_default`` in its results). The
 baseline is the untagged file, or ``seeds_<subject>_<SEEDS_BASELINE>.json`` when
-``SEEDS_BASELINE`` names a tag (e.g. ``it5k``, the preset's 5000 iterations on bob). Each run records its training wall time (``seconds``) and how many primitives ours pruned (``ours_pruned_primitives``),
-printed as a mean per seed. PSNR only (no LPIPS). About 6 to 8 minutes a seed run alone on a
+``SEEDS_BASELINE`` names a tag (e.g. ``it5k``, the preset's 5000 iterations on bob). Each run
+records its training wall time (``seconds``, printed as a mean per seed) and how many primitives
+ours pruned (``ours_pruned_primitives``). PSNR only (no LPIPS). About 6 to 8 minutes a seed run alone on a
 2-core CPU with the tiny preset (both models side by side, 5000 iterations each: 324 to 348 s
 of training a seed on alice in the realistic studio, plus 1 to 2 minutes of loading).
 """
