@@ -53,6 +53,7 @@ class TrainedHeads:
             out[f"{kind}_iterations"] = state.iteration
             out[f"{kind}_seconds"] = state.train_seconds
             out[f"{kind}_rollbacks"] = state.rollbacks
+            out[f"{kind}_clipped_steps"] = state.clipped_steps
             out[f"{kind}_pruned_primitives"] = model.num_pruned
             out[f"{kind}_primitives"] = model.config.num_prims
         return out
@@ -89,7 +90,8 @@ def fit_heads(setup: TrainingSetup, num_bars: int, params: TrainParams, device: 
             curve_fn=_curve_psnr(renderer, setup.assess, setup.curve_pairs) if lead else None, writer=writer,
             lr_decay_to=params.lr_decay_to, rank=rank, world_size=world_size,
             prune=params.pruning.schedule(iterations), weight_average=params.weight_average,
-            image_order=params.image_order, lr_warmup_iterations=params.lr_warmup_iterations)
+            image_order=params.image_order, lr_warmup_iterations=params.lr_warmup_iterations,
+            grad_clip_factor=params.grad_clip_factor)
         parameters[kind] = count_parameters(model)
         log.info("%s: %d parameters, %d primitives of %d^3 voxels", kind, parameters[kind],
                  config.num_prims, config.voxels_per_side)

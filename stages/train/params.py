@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import Field
+from pydantic import Field, field_validator
 
 from avatar.capacity import CapacityRule
 from avatar.config import AvatarConfig
@@ -50,6 +50,11 @@ class TrainParams(StageParams):
         "before the decay takes over (0 = none, as the paper). Both models alike. Leave it at 0 unless you are "
         "experimenting: on tiny, 500 neither narrowed ours' spread over seeds nor raised its validation PSNR "
         "(docs/experiments.md, section 22).")
+    grad_clip_factor: float = Field(
+        0.0, ge=0, description="Clip the gradient's norm (over all of a model's parameters) to this multiple of "
+        "its running mean before each optimiser step (0 = no clipping, as the paper; otherwise above 1). Both "
+        "models alike; each model's metrics count its clipped steps (`{model}_clipped_steps`). Raise it from 0 "
+        "only to experiment with steadier training (docs/experiments.md, section 26).")
     weight_average: float = Field(0.0, ge=0, lt=1, description="Decay per iteration of an exponential moving "
                                   "average of the weights, evaluated and saved instead of the last iterate (0 = "
                                   "the last iterate, as the paper; 0.998 averages over roughly the last 500 "
@@ -116,3 +121,12 @@ class TrainParams(StageParams):
     processes: int = Field(1, ge=1, description="Data-parallel training processes (torch.distributed DDP, launched "
                            "with torchrun; gloo on CPU, nccl with one GPU per process). batch_size is the global "
                            "batch and must divide by it; 1 = train in the stage's own process.")
+
+    @field_validator("grad_clip_factor")
+    @classmethod
+    def _clip_above_one(cls, value: float) -> float:
+        # A bound at or under the running mean would clip nearly every step: that is a smaller
+        # learning rate in disguise, not a guard against outliers.
+        if 0 < value <= 1:
+            raise ValueError(f"train.grad_clip_factor {value} must be 0 (off) or above 1, e.g. 2")
+        return value

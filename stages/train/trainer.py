@@ -183,6 +183,8 @@ class TrainState:
     curve: list = field(default_factory=list)  # [(iteration, train_seconds, validation-light PSNR dB)]
     pruned: int = 0  # primitives pruned (0 until the scheduled iteration)
     prune_done: bool = False
+    grad_norm_ema: float = float("nan")  # running mean of the (clipped) gradient norm, over all parameters
+    clipped_steps: int = 0  # optimiser steps whose gradient was clipped (``grad_clip_factor``)
 
 
 class Renderer:
@@ -277,7 +279,8 @@ class ModelTrainer:
                  curve_every: int = 0, curve_fn: Callable[[], float] | None = None, writer=None,
                  lr_decay_to: float = 1.0, rank: int = 0, world_size: int = 1,
                  prune: PruneSchedule | None = None, weight_average: float = 0.0,
-                 image_order: ImageOrder = "random", lr_warmup_iterations: int = 0) -> None:
+                 image_order: ImageOrder = "random", lr_warmup_iterations: int = 0,
+                 grad_clip_factor: float = 0.0) -> None:
         """``rank``/``world_size``: this process's place in an initialised process group (1 = no DDP).
 
         ``batch_size`` is the global batch; with DDP it must divide by ``world_size``.
@@ -287,6 +290,8 @@ class ModelTrainer:
         ``image_order``: how a batch's (frame, camera) images are drawn (``TrainParams.image_order``).
         ``lr_warmup_iterations``: the learning rate ramps linearly up to ``lr`` over this many
         first iterations (0 = none); see ``lr_at``.
+        ``grad_clip_factor``: clip the gradient's norm (over all parameters) to this multiple of
+        its running mean (0 = no clipping); see ``_clip_gradient``.
         """
         if batch_size % world_size:
             raise ValueError(f"batch_size {batch_size} does not divide by {world_size} processes")
@@ -301,6 +306,9 @@ class ModelTrainer:
         if lr_warmup_iterations < 0:
             raise ValueError(f"lr_warmup_iterations {lr_warmup_iterations} must be >= 0")
         self.lr_warmup_iterations = int(lr_warmup_iterations)
+        if grad_clip_factor < 0 or 0 < grad_clip_factor <= 1:
+            raise ValueError(f"grad_clip_factor {grad_clip_factor} must be 0 (off) or above 1")
+        self.grad_clip_factor = float(grad_clip_factor)
         self.curve_every, self.curve_fn, self.writer = curve_every, curve_fn, writer
         self.optim = torch.optim.Adam(self.model.parameters(), lr=lr)
         self.gen = torch.Generator(device="cpu")
@@ -567,12 +575,36 @@ class ModelTrainer:
         if not grads_ok:
             self._rollback("gradient is not finite")
             return terms
+        terms["grad_norm"] = self._clip_gradient()
         self.optim.step()
         if self.averaged is not None:
             self._update_average()
         ema = self.state.loss_ema
         self.state.loss_ema = terms["loss"] if not math.isfinite(ema) else 0.95 * ema + 0.05 * terms["loss"]
         return terms
+
+    def _clip_gradient(self) -> float:
+        """Clip the gradient's norm to ``grad_clip_factor`` x its running mean; returns the norm before.
+
+        The bound follows the norm's own level (an exponential mean over about 20 steps, of the
+        norms after clipping, so one outlier does not lift it) rather than a fixed value, because
+        the norm falls by orders of magnitude as training converges. The first 50 steps only
+        record, as the loss-spike rollback does. With DDP the gradients are already averaged over
+        the ranks here, so every rank clips alike.
+        """
+        grads = [p.grad for p in self.model.parameters() if p.grad is not None]
+        norm = float(torch.linalg.vector_norm(torch.stack([torch.linalg.vector_norm(g) for g in grads]))) \
+            if grads else 0.0
+        ema, kept = self.state.grad_norm_ema, norm
+        if self.grad_clip_factor and self.state.iteration > 50 and math.isfinite(ema):
+            bound = self.grad_clip_factor * ema
+            if norm > bound:
+                for g in grads:
+                    g.mul_(bound / norm)
+                self.state.clipped_steps += 1
+                kept = bound
+        self.state.grad_norm_ema = kept if not math.isfinite(ema) else 0.95 * ema + 0.05 * kept
+        return norm
 
     # ---- the loop ------------------------------------------------------------------------------
     def run(self, progress) -> TrainState:
