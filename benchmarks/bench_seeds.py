@@ -25,8 +25,8 @@ any (at the iterations each was run with; both are printed): variant - baseline 
 split, paired by seed, with the same 95% interval (``against_default`` in its results). The
 baseline is the untagged file, or ``seeds_<subject>_<SEEDS_BASELINE>.json`` when
 ``SEEDS_BASELINE`` names a tag (e.g. ``it5k``, the preset's 5000 iterations on bob). Each run
-records its training wall time (``seconds``, printed as a mean per seed) and how many primitives
-ours pruned (``ours_pruned_primitives``). PSNR only (no LPIPS). About 6 to 8 minutes a seed run alone on a
+records its training wall time (``seconds``, printed as a mean per seed), how many primitives
+ours pruned (``ours_pruned_primitives``) and each model's clipped steps (``<model>_clipped_steps``). PSNR only (no LPIPS). About 6 to 8 minutes a seed run alone on a
 2-core CPU with the tiny preset (both models side by side, 5000 iterations each: 324 to 348 s
 of training a seed on alice in the realistic studio, plus 1 to 2 minutes of loading).
 """
@@ -133,6 +133,8 @@ def main() -> dict:
             runs[seed]["seconds"] = m["seconds"]  # training wall time, both models
             # Whether the pruning dropped anything (docs/experiments.md, section 22, had to infer it).
             runs[seed]["ours_pruned_primitives"] = m.get("pruned_primitives")
+            for kind in MODELS:  # how often train.grad_clip_factor bound the step (0 when it is off)
+                runs[seed][f"{kind}_clipped_steps"] = m.get(f"{kind}_clipped_steps")
             for kind, curve in trained.get("curve", {}).items():
                 if curve:
                     runs[seed][f"curve_{kind}"] = curve

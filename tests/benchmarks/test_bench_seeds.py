@@ -103,7 +103,8 @@ def test_a_stopped_run_keeps_its_finished_seeds_and_compares_with_a_named_baseli
             stop_at.discard(seed)
             raise KeyboardInterrupt
         trained.append(seed)
-        return {"metrics": {"seconds": 1.0, "pruned_primitives": 3 * seed,
+        return {"metrics": {"seconds": 1.0, "pruned_primitives": 3 * seed, "ours_clipped_steps": 10 * seed,
+                            "travatar_clipped_steps": 0,
                             **{f"{m}_{s}_psnr": 25.0 + seed + (m == "ours") for m in bench.MODELS for s in bench.SPLITS}}}
 
     monkeypatch.setattr(bench, "run_train", fake_train)
@@ -128,6 +129,7 @@ def test_a_stopped_run_keeps_its_finished_seeds_and_compares_with_a_named_baseli
     assert trained == [1, 2]  # seed 0 came from the file
     assert results["complete"] is True and results["seeds"] == [0, 1, 2]
     assert results["runs"]["2"]["ours_pruned_primitives"] == 6  # kept per seed, from the stage's metrics
+    assert (results["runs"]["2"]["ours_clipped_steps"], results["runs"]["2"]["travatar_clipped_steps"]) == (20, 0)
     compared = results["against_default"]
     assert compared["seeds"] == [0, 2] and compared["baseline_file"] == "seeds_bob_it5k.json"
     assert compared["ours_novel_light"]["diff_mean"] == pytest.approx(1.0)
