@@ -26,9 +26,11 @@ split, paired by seed, with the same 95% interval (``against_default`` in its re
 baseline is the untagged file, or ``seeds_<subject>_<SEEDS_BASELINE>.json`` when
 ``SEEDS_BASELINE`` names a tag (e.g. ``it5k``, the preset's 5000 iterations on bob). Each run
 records its training wall time (``seconds``, printed as a mean per seed), how many primitives
-ours pruned (``ours_pruned_primitives``) and each model's clipped steps (``<model>_clipped_steps``). PSNR only (no LPIPS). About 6 to 8 minutes a seed run alone on a
-2-core CPU with the tiny preset (both models side by side, 5000 iterations each: 324 to 348 s
-of training a seed on alice in the realistic studio, plus 1 to 2 minutes of loading).
+ours pruned (``ours_pruned_primitives``) and each model's clipped steps (``<model>_clipped_steps``,
+``train.grad_clip_factor``). PSNR only (no LPIPS). About 6 to 8 minutes a seed run alone on a
+2-core CPU with the tiny preset (both models side by side, 5000 iterations each: 324 to 348 s of
+training a seed on alice in the realistic studio, plus 1 to 2 minutes of loading; a slower
+machine took 479 to 570 s).
 """
 
 from __future__ import annotations

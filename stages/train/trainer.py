@@ -588,7 +588,8 @@ class ModelTrainer:
 
         The bound follows the norm's own level (an exponential mean over about 20 steps, of the
         norms after clipping, so one outlier does not lift it) rather than a fixed value, because
-        the norm falls by orders of magnitude as training converges. The first 50 steps only
+        the norm's scale differs between models and presets and drifts as training goes on, and no
+        fixed value would fit them all. The first 50 steps only
         record, as the loss-spike rollback does. With DDP the gradients are already averaged over
         the ranks here, so every rank clips alike.
         """
