@@ -26,9 +26,10 @@ def _params_digest(model: torch.nn.Module) -> str:
 
 
 def rollback_rank(rank: int, world_size: int, init_file: str, capture: dict[str, Path], workdir: Path,
-                  iterations: int, nan_at: int, spike_at: int) -> None:
+                  iterations: int, nan_at: int, spike_at: int, grad_clip_factor: float = 0.0) -> None:
     """Train ``iterations`` steps (checkpoint every 2) with rank 1's loss made NaN at ``nan_at`` and
-    1000x at ``spike_at``; writes, per iteration, the model digest, rollbacks and lr to ``rank<r>.json``."""
+    1000x at ``spike_at`` (-1: never); writes, per iteration, the model digest, rollbacks, lr and
+    clipped steps (``grad_clip_factor``) to ``rank<r>.json``."""
     from stages.train import trainer as trainer_mod
     from stages.train.data import load_train_data
 
@@ -55,14 +56,14 @@ def rollback_rank(rank: int, world_size: int, init_file: str, capture: dict[str,
 
         def after_iteration() -> float:  # the trainer's curve hook, called after every iteration
             record.append({"digest": _params_digest(model), "rollbacks": trainer.state.rollbacks,
-                           "lr": trainer.state.lr})
+                           "lr": trainer.state.lr, "clipped_steps": trainer.state.clipped_steps})
             return 0.0
 
         trainer = trainer_mod.ModelTrainer(
             renderer, tensors, np.arange(len(data.bar)), iterations=iterations, batch_size=4, rays_per_image=32,
             lr=3e-3, weights=trainer_mod.LossWeights(), seed=0, ckpt_path=workdir / f"ckpt{rank}.pt",
             checkpoint_every=2, spike_factor=10.0, log=log, rank=rank, world_size=world_size, curve_every=1,
-            curve_fn=after_iteration)
+            curve_fn=after_iteration, grad_clip_factor=grad_clip_factor)
 
         trainer.run(SilentProgress())
         (workdir / f"rank{rank}.json").write_text(json.dumps(record[1:]))  # record[0]: before training
