@@ -44,6 +44,10 @@ from pipeline.workspace import atomic_path
 #: How a batch's training images are drawn (``TrainParams.image_order``).
 ImageOrder = Literal["random", "balanced"]
 
+#: Steps before a running mean (of the loss, of the gradient norm) is trusted: the loss-spike
+#: rollback and the gradient clip only record until then.
+WARM_UP_STEPS = 50
+
 
 class TrainingStopped(RuntimeError):
     """A trainer stopped early because a trainer beside it failed (``ModelTrainer.stop_event``)."""
@@ -306,7 +310,7 @@ class ModelTrainer:
         if lr_warmup_iterations < 0:
             raise ValueError(f"lr_warmup_iterations {lr_warmup_iterations} must be >= 0")
         self.lr_warmup_iterations = int(lr_warmup_iterations)
-        if grad_clip_factor < 0 or 0 < grad_clip_factor <= 1:
+        if grad_clip_factor < 0 or 0 < grad_clip_factor <= 1:  # TrainParams checks it too; this is for direct callers
             raise ValueError(f"grad_clip_factor {grad_clip_factor} must be 0 (off) or above 1")
         self.grad_clip_factor = float(grad_clip_factor)
         self.curve_every, self.curve_fn, self.writer = curve_every, curve_fn, writer
@@ -560,7 +564,7 @@ class ModelTrainer:
         else:
             total, terms = self.losses(frames, cams, pix, eps)
         bad = not math.isfinite(terms["loss"])
-        warm = self.state.iteration > 50 and math.isfinite(self.state.loss_ema)
+        warm = self.state.iteration > WARM_UP_STEPS and math.isfinite(self.state.loss_ema)
         if not bad and warm and terms["loss"] > self.spike_factor * self.state.loss_ema:
             self._rollback(f"loss spike {terms['loss']:.4g} > {self.spike_factor} x running mean "
                            f"{self.state.loss_ema:.4g}")
@@ -589,15 +593,15 @@ class ModelTrainer:
         The bound follows the norm's own level (an exponential mean over about 20 steps, of the
         norms after clipping, so one outlier does not lift it) rather than a fixed value, because
         the norm's scale differs between models and presets and drifts as training goes on, and no
-        fixed value would fit them all. The first 50 steps only
-        record, as the loss-spike rollback does. With DDP the gradients are already averaged over
-        the ranks here, so every rank clips alike.
+        fixed value would fit them all. The first ``WARM_UP_STEPS`` steps only record, as the
+        loss-spike rollback does. With DDP the gradients are already averaged over the ranks here,
+        so every rank clips alike.
         """
         grads = [p.grad for p in self.model.parameters() if p.grad is not None]
         norm = float(torch.linalg.vector_norm(torch.stack([torch.linalg.vector_norm(g) for g in grads]))) \
             if grads else 0.0
         ema, kept = self.state.grad_norm_ema, norm
-        if self.grad_clip_factor and self.state.iteration > 50 and math.isfinite(ema):
+        if self.grad_clip_factor and self.state.iteration > WARM_UP_STEPS and math.isfinite(ema):
             bound = self.grad_clip_factor * ema
             if norm > bound:
                 for g in grads:

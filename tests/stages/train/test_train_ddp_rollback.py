@@ -58,4 +58,3 @@ def test_both_ranks_clip_the_same_steps_and_stay_in_step(tmp_path):
     assert ranks[0][-1]["rollbacks"] == 0
     # A bound 5% over the running mean catches some of the 19 steps after the first 51, never those.
     assert ranks[0][50]["clipped_steps"] == 0 < ranks[0][-1]["clipped_steps"] <= iterations - 51
-

@@ -88,6 +88,6 @@ def test_the_stage_counts_each_models_clipped_steps(tmp_path):
               "checkpoint_every": 100, "grad_clip_factor": 1.05}
     out = run_stage_for_test(STAGE, tmp_path / "ws", capture, params)
     metrics = json.loads((out / "metrics.json").read_text())
-    # A bound 5% over the mean catches some of the 19 steps after the first 50, never the first 51.
+    # A bound 5% over the mean catches some of the 19 steps after the first 51, never those.
     for kind in ("ours", "travatar"):
         assert 0 < metrics[f"{kind}_clipped_steps"] <= 19
