@@ -27,7 +27,12 @@ baseline is the untagged file, or ``seeds_<subject>_<SEEDS_BASELINE>.json`` when
 ``SEEDS_BASELINE`` names a tag (e.g. ``it5k``, the preset's 5000 iterations on bob). Each run
 records its training wall time (``seconds``, printed as a mean per seed), how many primitives
 ours pruned (``ours_pruned_primitives``) and each model's clipped steps (``<model>_clipped_steps``,
-``train.grad_clip_factor``). PSNR only (no LPIPS). About 6 to 8 minutes a seed run alone on a
+``train.grad_clip_factor``). ``SEEDS_MODELS=ours`` trains ours alone (``train.baseline`` off; a
+tag is then required, so the untagged file the report reads always holds both models): a setting
+is adopted by what it does to ours, and ours alone takes one core, so two such benches run side
+by side on a 2-core CPU and screen two settings in the time of one. Ours' figures are the same,
+seed for seed, as when it trains beside TRAvatar*, and an ours-only run pairs with a baseline file
+of either kind on ours. PSNR only (no LPIPS). About 6 to 8 minutes a seed run alone on a
 2-core CPU with the tiny preset (both models side by side, 5000 iterations each: 324 to 348 s of
 training a seed on alice in the realistic studio, plus 1 to 2 minutes of loading; a slower
 machine took 479 to 570 s).
@@ -75,15 +80,16 @@ def paired_summary(ours: list[float], baseline: list[float]) -> dict:
             "travatar_std": std(b), **paired_difference(ours, baseline)}
 
 
-def against_default(runs: dict[int, dict], default: dict[int, dict], seeds: list[int]) -> dict:
-    """Variant - default per ``<model>_<split>`` over the ``seeds`` both hold (paired by seed); {} if none."""
+def against_default(runs: dict[int, dict], default: dict[int, dict], seeds: list[int],
+                    models: tuple[str, ...] = MODELS) -> dict:
+    """Variant - default per ``<model>_<split>`` of ``models`` over the ``seeds`` both hold (paired by seed); {} if none."""
     shared = [x for x in seeds if x in runs and x in default]
     if not shared:
         return {}
     return {"seeds": shared, **{f"{m}_{s}": paired_difference([runs[x][f"{m}_{s}"] for x in shared],
                                                            [default[x][f"{m}_{s}"] for x in shared],
                                                            ("variant", "default"))
-                                for m in MODELS for s in SPLITS}}
+                                for m in models for s in SPLITS}}
 
 
 def merge_params(base: dict, overrides: dict) -> dict:
@@ -107,22 +113,36 @@ def _overrides() -> dict:
     return value
 
 
+def _models(tag: str) -> tuple[str, ...]:
+    """The models ``SEEDS_MODELS`` names: both (the default, or ``ours,travatar``) or ``ours`` alone, with a tag."""
+    text = os.environ.get("SEEDS_MODELS", "").strip().replace(" ", "")
+    if text in ("", "ours,travatar", "travatar,ours"):
+        return MODELS
+    if text != "ours":
+        raise SystemExit(f"SEEDS_MODELS={text!r}: give 'ours' (ours alone) or 'ours,travatar' (both, the default)")
+    if not tag:
+        # The untagged file is the report's headline comparison: it must hold both models.
+        raise SystemExit("SEEDS_MODELS=ours needs a SEEDS_TAG: the untagged results file holds both models")
+    return ("ours",)
+
+
 def main() -> dict:
     subject = os.environ.get("SEEDS_SUBJECT", "alice")
     seeds = [int(s) for s in os.environ.get("SEEDS", "0,1,2").split(",")]
     tag = _tag("SEEDS_TAG")
     baseline = _tag("SEEDS_BASELINE")
+    models = _models(tag)
     preset = tiny_train_params()
     iterations = int(os.environ.get("SEEDS_ITERATIONS", "0")) or int(preset["iterations"])
     curve_every = int(os.environ.get("SEEDS_CURVE_EVERY", "0"))
-    base = merge_params({**preset, "iterations": iterations, "baseline": True, "baseline_iterations": 0,
+    base = merge_params({**preset, "iterations": iterations, "baseline": "travatar" in models, "baseline_iterations": 0,
                          "lpips": False, "curve_every": curve_every, "previews": 0}, _overrides())
     out = ROOT / "bench-results"
     path = out / (f"seeds_{subject}_{tag}.json" if tag else f"seeds_{subject}.json")
     with tempfile.TemporaryDirectory(prefix="bench-seeds-") as tmp:
         scratch = Path(tmp)
         inputs, source = train_inputs(subject, scratch)
-        runs = _earlier_runs(path, base, source)
+        runs = _earlier_runs(path, base, source, models)
         print(f"seeds: {source}, {iterations} iterations per model, seeds {seeds}"
               + (f" (seeds {sorted(set(runs) & set(seeds))} from {path.name})" if set(runs) & set(seeds) else ""),
               flush=True)
@@ -131,43 +151,50 @@ def main() -> dict:
                 continue
             trained = run_train(inputs, {**base, "seed": seed}, scratch, f"seed{seed}")
             m = trained["metrics"]
-            runs[seed] = {f"{k}_{s}": m[f"{k}_{s}_psnr"] for k in MODELS for s in SPLITS}
-            runs[seed]["seconds"] = m["seconds"]  # training wall time, both models
+            runs[seed] = {f"{k}_{s}": m[f"{k}_{s}_psnr"] for k in models for s in SPLITS}
+            runs[seed]["seconds"] = m["seconds"]  # training wall time, every model trained
             # Whether the pruning dropped anything (docs/experiments.md, section 22, had to infer it).
             runs[seed]["ours_pruned_primitives"] = m.get("pruned_primitives")
-            for kind in MODELS:  # how often train.grad_clip_factor bound the step (0 when it is off)
+            for kind in models:  # how often train.grad_clip_factor bound the step (0 when it is off)
                 runs[seed][f"{kind}_clipped_steps"] = m.get(f"{kind}_clipped_steps")
             for kind, curve in trained.get("curve", {}).items():
                 if curve:
                     runs[seed][f"curve_{kind}"] = curve
-            print(f"seed {seed}: " + ", ".join(f"{s} {runs[seed][f'ours_{s}']:.2f}/{runs[seed][f'travatar_{s}']:.2f}"
-                                                for s in SPLITS) + " (ours/TRAvatar*)", flush=True)
+            print(f"seed {seed}: " + ", ".join(f"{s} " + "/".join(f"{runs[seed][f'{k}_{s}']:.2f}" for k in models)
+                                                for s in SPLITS)
+                  + (" (ours/TRAvatar*)" if len(models) > 1 else " (ours)"), flush=True)
             # Each seed costs minutes: keep it at once, so a stopped run resumes from here.
             write_json_atomic(path, {"subject": subject, "source": source, "iterations": iterations,
                                   "seeds": sorted(runs), "params": base, "complete": False,
                                   "runs": {str(k): v for k, v in sorted(runs.items())},
-                                  "summary": _summary(runs, sorted(runs))})
-    summary = _summary(runs, seeds)
-    print(f"{'split':<12} {'ours':>13} {'TRAvatar*':>13} {'ours - TRAvatar* (95% CI)':>30}  verdict")
-    for s, r in summary.items():
-        print(f"{s:<12} {r['ours_mean']:6.2f} ± {r['ours_std']:4.2f} {r['travatar_mean']:6.2f} ± {r['travatar_std']:4.2f} "
-              f"{r['diff_mean']:+6.2f} [{r['diff_ci95'][0]:+.2f}, {r['diff_ci95'][1]:+.2f}]{'':>8}  {r['verdict']}")
+                                  "models": list(models), "summary": _summary(runs, sorted(runs), models)})
+    summary = _summary(runs, seeds, models)
+    if len(models) > 1:
+        print(f"{'split':<12} {'ours':>13} {'TRAvatar*':>13} {'ours - TRAvatar* (95% CI)':>30}  verdict")
+        for s, r in summary.items():
+            print(f"{s:<12} {r['ours_mean']:6.2f} ± {r['ours_std']:4.2f} {r['travatar_mean']:6.2f} ± "
+                  f"{r['travatar_std']:4.2f} {r['diff_mean']:+6.2f} [{r['diff_ci95'][0]:+.2f}, "
+                  f"{r['diff_ci95'][1]:+.2f}]{'':>8}  {r['verdict']}")
+    else:
+        print(f"{'split':<12} {'ours':>13}")
+        for s, r in summary.items():
+            print(f"{s:<12} {r['ours_mean']:6.2f} ± {r['ours_std']:4.2f}")
     timed = [runs[x]["seconds"] for x in seeds if "seconds" in runs[x]]
     if timed:
-        print(f"training wall time per seed (both models): {np.mean(timed):.0f} s (min {min(timed):.0f}, "
-              f"max {max(timed):.0f}, {len(timed)} seeds)")
+        print(f"training wall time per seed ({'both models' if len(models) > 1 else 'ours alone'}): "
+              f"{np.mean(timed):.0f} s (min {min(timed):.0f}, max {max(timed):.0f}, {len(timed)} seeds)")
     results = {"subject": subject, "source": source, "iterations": iterations, "seeds": seeds, "params": base,
-               "complete": True, "runs": {str(k): v for k, v in sorted(runs.items())}, "summary": summary}
+               "models": list(models), "complete": True, "runs": {str(k): v for k, v in sorted(runs.items())}, "summary": summary}
     if tag and tag != baseline:
         baseline_name = f"seeds_{subject}_{baseline}.json" if baseline else f"seeds_{subject}.json"
-        default_iterations, default = _default_runs(out / baseline_name, source)
-        compared = against_default(runs, default, seeds)
+        default_iterations, default = _default_runs(out / baseline_name, source, models)
+        compared = against_default(runs, default, seeds, models)
         if compared:
             compared["default_iterations"] = default_iterations
             compared["baseline_file"] = baseline_name
             print(f"{tag} ({iterations} iterations) - {baseline or 'default'} ({default_iterations} iterations, "
                   f"{baseline_name}), paired over seeds {compared['seeds']} (95% CI):")
-            for m in MODELS:
+            for m in models:
                 print(f"  {'ours' if m == 'ours' else 'TRAvatar*':<9} " + ", ".join(
                     f"{s} {compared[f'{m}_{s}']['diff_mean']:+.2f} [{compared[f'{m}_{s}']['diff_ci95'][0]:+.2f}, "
                     f"{compared[f'{m}_{s}']['diff_ci95'][1]:+.2f}]" for s in SPLITS))
@@ -178,10 +205,14 @@ def main() -> dict:
     return results
 
 
-def _summary(runs: dict[int, dict], seeds: list[int]) -> dict:
-    """Per split: both models' mean and spread over ``seeds`` and the paired difference ours - TRAvatar*."""
-    return {s: paired_summary([runs[x][f"ours_{s}"] for x in seeds], [runs[x][f"travatar_{s}"] for x in seeds])
-            for s in SPLITS}
+def _summary(runs: dict[int, dict], seeds: list[int], models: tuple[str, ...] = MODELS) -> dict:
+    """Per split: each model's mean and spread over ``seeds``, and with both the paired difference ours - TRAvatar*."""
+    if "travatar" in models:
+        return {s: paired_summary([runs[x][f"ours_{s}"] for x in seeds], [runs[x][f"travatar_{s}"] for x in seeds])
+                for s in SPLITS}
+    values = {s: np.asarray([runs[x][f"ours_{s}"] for x in seeds], float) for s in SPLITS}
+    return {s: {"ours_mean": float(v.mean()), "ours_std": float(v.std(ddof=1)) if len(v) > 1 else float("nan")}
+            for s, v in values.items()}
 
 
 def _tag(variable: str) -> str:
@@ -192,11 +223,12 @@ def _tag(variable: str) -> str:
     return tag
 
 
-def _runs_matching(path: Path, **expected: object) -> dict[int, dict]:
+def _runs_matching(path: Path, models: tuple[str, ...] = MODELS, **expected: object) -> dict[int, dict]:
     """Per-seed figures of the results file ``path`` if its fields equal ``expected``, else none.
 
-    A seed without every split's figures is left out: it was trained before the validation split
-    existed, on frames that are now held out, so it is neither reused nor paired.
+    A seed without every split's figures for each of ``models`` is left out: it was trained before
+    the validation split existed, on frames that are now held out, so it is neither reused nor
+    paired. A file of both models pairs with an ours-only run on ours.
     """
     try:
         results = json.loads(path.read_text())
@@ -204,30 +236,30 @@ def _runs_matching(path: Path, **expected: object) -> dict[int, dict]:
         return {}
     if any(results.get(key) != value for key, value in expected.items()):
         return {}
-    keys = {f"{m}_{s}" for m in MODELS for s in SPLITS}
+    keys = {f"{m}_{s}" for m in models for s in SPLITS}
     return {int(k): v for k, v in results.get("runs", {}).items() if keys <= set(v)}
 
 
-def _default_runs(path: Path, source: str) -> tuple[int | None, dict[int, dict]]:
+def _default_runs(path: Path, source: str, models: tuple[str, ...] = MODELS) -> tuple[int | None, dict[int, dict]]:
     """Iterations and per-seed figures of the untagged run on the same data, else (None, {}).
 
     Its iterations may differ from the variant's: a variant may spend a different budget
     (``SEEDS_ITERATIONS``), and the comparison says so.
     """
-    runs = _runs_matching(path, source=source)
+    runs = _runs_matching(path, models, source=source)
     if not runs:
         return None, {}
     return int(json.loads(path.read_text())["iterations"]), runs
 
 
-def _earlier_runs(path: Path, params: dict, source: str) -> dict[int, dict]:
+def _earlier_runs(path: Path, params: dict, source: str, models: tuple[str, ...] = MODELS) -> dict[int, dict]:
     """Per-seed figures of an earlier run of this bench with the same train params and data, else none.
 
     Training is deterministic for a seed, so adding seeds (``SEEDS=0,1,2,3,4`` after ``0,1,2``)
     trains only the new ones. The data is identified by its source only: rerun from scratch
     (delete the file) after re-running the subject's upstream stages.
     """
-    return _runs_matching(path, params=params, source=source)
+    return _runs_matching(path, models, params=params, source=source)
 
 
 if __name__ == "__main__":

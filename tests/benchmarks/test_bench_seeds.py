@@ -163,3 +163,45 @@ def test_learning_curves_are_kept_per_seed_when_asked(tmp_path, monkeypatch):
     monkeypatch.delenv("SEEDS_CURVE_EVERY")
     results = bench.main()
     assert periods[2:] == [0, 0] and "curve_ours" not in results["runs"]["0"]
+
+
+def test_ours_alone_trains_without_the_baseline_and_pairs_with_a_file_of_both(tmp_path, monkeypatch):
+    """SEEDS_MODELS=ours: no TRAvatar* run, ours' figures only, paired on ours with a baseline of both models."""
+    import json
+
+    bench = _bench_in(tmp_path, monkeypatch)
+    baselines: list[bool] = []
+
+    def fake_train(inputs, params, scratch, name):
+        # Stands in for a real training run: what the bench asks of the stage and keeps of it is tested here.
+        baselines.append(params["baseline"])
+        kinds = ("ours", "travatar") if params["baseline"] else ("ours",)
+        return {"metrics": {"seconds": 2.0, "ours_clipped_steps": 0,
+                            **{f"{m}_{s}_psnr": 26.0 + params["seed"] for m in kinds for s in bench.SPLITS}}}
+
+    monkeypatch.setattr(bench, "run_train", fake_train)
+    monkeypatch.setenv("SEEDS_SUBJECT", "bob")
+    monkeypatch.setenv("SEEDS", "0,1")
+    monkeypatch.setenv("SEEDS_MODELS", "ours")
+    with pytest.raises(SystemExit, match="SEEDS_MODELS=ours needs a SEEDS_TAG"):
+        bench.main()  # the untagged file is the report's: both models or nothing
+    assert baselines == []
+    # The shipped settings' file of both models, ours half a dB under the variant on seed 0 and 1 dB on seed 1.
+    both = {str(x): {f"{m}_{s}": 25.5 + x / 2 for m in bench.MODELS for s in bench.SPLITS} for x in (0, 1)}
+    (tmp_path / "bench-results" / "seeds_bob.json").write_text(json.dumps(
+        {"source": "workspace bob", "iterations": 10, "runs": both}))
+    monkeypatch.setenv("SEEDS_TAG", "alone")
+    results = bench.main()
+    assert baselines == [False, False]  # train.baseline off: ours alone
+    assert results["models"] == ["ours"] and set(results["runs"]["1"]) == (
+        {f"ours_{s}" for s in bench.SPLITS} | {"seconds", "ours_pruned_primitives", "ours_clipped_steps"})
+    assert results["summary"]["val_light"] == {"ours_mean": 26.5, "ours_std": pytest.approx(0.5 ** 0.5)}
+    compared = results["against_default"]
+    assert compared["seeds"] == [0, 1] and not any(k.startswith("travatar") for k in compared)
+    assert compared["ours_val_perf"]["diff_mean"] == pytest.approx(0.75)  # (0.5 + 1.0) / 2
+    # A rerun reuses the ours-only seeds it holds.
+    baselines.clear()
+    assert bench.main()["seeds"] == [0, 1] and baselines == []
+    monkeypatch.setenv("SEEDS_MODELS", "travatar")
+    with pytest.raises(SystemExit, match="SEEDS_MODELS='travatar'"):
+        bench.main()
