@@ -194,6 +194,18 @@ def test_models_trained_side_by_side_are_the_models_trained_one_after_another(ca
         assert m1[f"travatar_{split}_psnr"] == m2[f"travatar_{split}_psnr"], split
 
 
+def test_ours_trained_alone_is_ours_trained_beside_the_baseline(capture, tmp_path):
+    """benchmarks/bench_seeds.py's SEEDS_MODELS=ours pairs ours-alone runs with runs of both models, seed for seed."""
+    params = {**BASE, "iterations": 8, "lpips": False, "curve_every": 4}
+    alone = run_stage_for_test(STAGE, tmp_path / "alone", capture, {**params, "baseline": False})
+    beside = run_stage_for_test(STAGE, tmp_path / "beside", capture, {**params, "parallel_models": 2})
+    assert_same_models(alone, beside, ("ours",))
+    m1, m2 = (json.loads((out / "metrics.json").read_text()) for out in (alone, beside))
+    assert "travatar_val_light_psnr" not in m1
+    for split in SPLITS:
+        assert m1[f"ours_{split}_psnr"] == m2[f"ours_{split}_psnr"], split
+
+
 def test_init_and_sampling_seeds_each_take_over_their_part_of_seed(capture, tmp_path):
     params = {**BASE, "iterations": 3, "baseline": False, "lpips": False, "previews": 0, "curve_every": 0}
     seed0 = run_stage_for_test(STAGE, tmp_path / "a", capture, {**params, "seed": 0})
