@@ -20,8 +20,9 @@ as ``curve_ours`` and ``curve_travatar``: [iteration, seconds, PSNR] points, to 
 training the seeds part; each point renders 3 images, so the training time grows a little). Writes ``bench-results/seeds_<subject>.json`` (``seeds_<subject>_<tag>.json`` with a
 tag) after every seed, so a stopped run keeps the seeds it finished; a later run with the same
 settings reuses the seeds that file already holds and trains only the new ones. A tagged run
-also compares itself with a baseline file's runs of the same seeds and data where there are
-any (at the iterations each was run with; both are printed): variant - baseline per model and
+also compares itself with a baseline file's runs of the same seeds and data (the same
+digest of the input files: another build of a subject can differ in its images and draw other
+runs for a seed) where there are any (at the iterations each was run with; both are printed): variant - baseline per model and
 split, paired by seed, with the same 95% interval (``against_default`` in its results). The
 baseline is the untagged file, or ``seeds_<subject>_<SEEDS_BASELINE>.json`` when
 ``SEEDS_BASELINE`` names a tag (e.g. ``it5k``, the preset's 5000 iterations on bob). Each run
@@ -47,7 +48,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.train_runs import ROOT, run_train, tiny_train_params, train_inputs
+from benchmarks.train_runs import ROOT, inputs_digest, run_train, tiny_train_params, train_inputs
 from pipeline.workspace import write_json_atomic
 
 #: Validation first: a setting is adopted by what it does to ours there, over seeds (docs/experiments.md,
@@ -142,8 +143,9 @@ def main() -> dict:
     with tempfile.TemporaryDirectory(prefix="bench-seeds-") as tmp:
         scratch = Path(tmp)
         inputs, source = train_inputs(subject, scratch)
-        runs = _earlier_runs(path, base, source, models)
-        print(f"seeds: {source}, {iterations} iterations per model, seeds {seeds}"
+        digest = inputs_digest(inputs)
+        runs = _earlier_runs(path, base, source, models, digest)
+        print(f"seeds: {source} (inputs {digest}), {iterations} iterations per model, seeds {seeds}"
               + (f" (seeds {sorted(set(runs) & set(seeds))} from {path.name})" if set(runs) & set(seeds) else ""),
               flush=True)
         for seed in seeds:
@@ -164,7 +166,8 @@ def main() -> dict:
                                                 for s in SPLITS)
                   + (" (ours/TRAvatar*)" if len(models) > 1 else " (ours)"), flush=True)
             # Each seed costs minutes: keep it at once, so a stopped run resumes from here.
-            write_json_atomic(path, {"subject": subject, "source": source, "iterations": iterations,
+            write_json_atomic(path, {"subject": subject, "source": source, "inputs_digest": digest,
+                                  "iterations": iterations,
                                   "seeds": sorted(runs), "params": base, "complete": False,
                                   "runs": {str(k): v for k, v in sorted(runs.items())},
                                   "models": list(models), "summary": _summary(runs, sorted(runs), models)})
@@ -183,11 +186,12 @@ def main() -> dict:
     if timed:
         print(f"training wall time per seed ({'both models' if len(models) > 1 else 'ours alone'}): "
               f"{np.mean(timed):.0f} s (min {min(timed):.0f}, max {max(timed):.0f}, {len(timed)} seeds)")
-    results = {"subject": subject, "source": source, "iterations": iterations, "seeds": seeds, "params": base,
+    results = {"subject": subject, "source": source, "inputs_digest": digest, "iterations": iterations,
+               "seeds": seeds, "params": base,
                "models": list(models), "complete": True, "runs": {str(k): v for k, v in sorted(runs.items())}, "summary": summary}
     if tag and tag != baseline:
         baseline_name = f"seeds_{subject}_{baseline}.json" if baseline else f"seeds_{subject}.json"
-        default_iterations, default = _default_runs(out / baseline_name, source, models)
+        default_iterations, default = _default_runs(out / baseline_name, source, models, digest)
         compared = against_default(runs, default, seeds, models)
         if compared:
             compared["default_iterations"] = default_iterations
@@ -223,8 +227,12 @@ def _tag(variable: str) -> str:
     return tag
 
 
-def _runs_matching(path: Path, models: tuple[str, ...] = MODELS, **expected: object) -> dict[int, dict]:
+def _runs_matching(path: Path, models: tuple[str, ...] = MODELS, digest: str | None = None,
+                   **expected: object) -> dict[int, dict]:
     """Per-seed figures of the results file ``path`` if its fields equal ``expected``, else none.
+
+    With ``digest``, a file of other inputs (``inputs_digest``) gives none either; a file written
+    before the bench kept the digest is matched on the rest alone.
 
     A seed without every split's figures for each of ``models`` is left out: it was trained before
     the validation split existed, on frames that are now held out, so it is neither reused nor
@@ -236,30 +244,34 @@ def _runs_matching(path: Path, models: tuple[str, ...] = MODELS, **expected: obj
         return {}
     if any(results.get(key) != value for key, value in expected.items()):
         return {}
+    if digest is not None and results.get("inputs_digest", digest) != digest:
+        return {}  # another build of the inputs: its seeds draw other runs (train_runs.inputs_digest)
     keys = {f"{m}_{s}" for m in models for s in SPLITS}
     return {int(k): v for k, v in results.get("runs", {}).items() if keys <= set(v)}
 
 
-def _default_runs(path: Path, source: str, models: tuple[str, ...] = MODELS) -> tuple[int | None, dict[int, dict]]:
+def _default_runs(path: Path, source: str, models: tuple[str, ...] = MODELS,
+                  digest: str | None = None) -> tuple[int | None, dict[int, dict]]:
     """Iterations and per-seed figures of the untagged run on the same data, else (None, {}).
 
     Its iterations may differ from the variant's: a variant may spend a different budget
     (``SEEDS_ITERATIONS``), and the comparison says so.
     """
-    runs = _runs_matching(path, models, source=source)
+    runs = _runs_matching(path, models, digest, source=source)
     if not runs:
         return None, {}
     return int(json.loads(path.read_text())["iterations"]), runs
 
 
-def _earlier_runs(path: Path, params: dict, source: str, models: tuple[str, ...] = MODELS) -> dict[int, dict]:
+def _earlier_runs(path: Path, params: dict, source: str, models: tuple[str, ...] = MODELS,
+                  digest: str | None = None) -> dict[int, dict]:
     """Per-seed figures of an earlier run of this bench with the same train params and data, else none.
 
     Training is deterministic for a seed, so adding seeds (``SEEDS=0,1,2,3,4`` after ``0,1,2``)
-    trains only the new ones. The data is identified by its source only: rerun from scratch
-    (delete the file) after re-running the subject's upstream stages.
+    trains only the new ones. The data is identified by its source and the digest of the input
+    files (``train_runs.inputs_digest``), so a rebuilt subject whose files differ trains again.
     """
-    return _runs_matching(path, models, params=params, source=source)
+    return _runs_matching(path, models, digest, params=params, source=source)
 
 
 if __name__ == "__main__":

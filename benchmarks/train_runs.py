@@ -50,6 +50,33 @@ def train_inputs(subject: str, scratch: Path) -> tuple[dict[str, str], str]:
     return {k: str(v) for k, v in folders.items()}, "synthetic capture (tests/stages/train/train_synth.py)"
 
 
+#: Files that record how a stage's run went rather than what it produced (timings, the controller's
+#: clock): they differ between two runs that produced the same data, so no digest of the data reads them.
+_RUN_RECORDS = ("metrics.json", "controller_log.json")
+
+
+def inputs_digest(inputs: dict[str, str]) -> str:
+    """A digest of the train inputs' data: every file of each input folder but its run records.
+
+    Two builds of a subject's upstream stages can give different images (another CPU's float
+    rounding in the matting network, say) while every figure they print agrees to the digits
+    shown, and training on them then draws different runs for the same seed. The benches pair and
+    reuse runs only on the same digest.
+    """
+    import hashlib
+
+    digest = hashlib.sha256()
+    for name in sorted(inputs):
+        folder = Path(inputs[name])
+        files = sorted(p for p in folder.rglob("*") if p.is_file() and p.name not in _RUN_RECORDS)
+        for path in files:
+            digest.update(f"{name}/{path.relative_to(folder).as_posix()}\0".encode())
+            with path.open("rb") as handle:
+                for block in iter(lambda: handle.read(1 << 20), b""):
+                    digest.update(block)
+    return digest.hexdigest()[:16]
+
+
 def _train_once(spec: dict) -> dict:
     """In the child: run the train stage once; its metrics and capacity.json."""
     import torch

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 
 from benchmarks.bench_seeds import paired_summary
@@ -205,3 +207,51 @@ def test_ours_alone_trains_without_the_baseline_and_pairs_with_a_file_of_both(tm
     monkeypatch.setenv("SEEDS_MODELS", "travatar")
     with pytest.raises(SystemExit, match="SEEDS_MODELS='travatar'"):
         bench.main()
+
+
+def test_the_inputs_digest_reads_the_data_and_not_the_run_records(tmp_path):
+    from benchmarks.train_runs import inputs_digest
+
+    def build(root, image: bytes, seconds: float):
+        (root / "capture" / "frames").mkdir(parents=True)
+        (root / "capture" / "frames" / "000.png").write_bytes(image)
+        (root / "capture" / "metrics.json").write_text(f'{{"seconds": {seconds}}}')
+        (root / "capture" / "controller_log.json").write_text(f'{{"time_us": {seconds * 1e6}}}')
+        (root / "matte").mkdir()
+        (root / "matte" / "model.json").write_text("{}")
+        return {"capture": str(root / "capture"), "matte": str(root / "matte")}
+
+    first = inputs_digest(build(tmp_path / "a", b"\x01\x02", 250.0))
+    assert inputs_digest(build(tmp_path / "b", b"\x01\x02", 411.0)) == first  # the same data, other timings
+    assert inputs_digest(build(tmp_path / "c", b"\x01\x03", 250.0)) != first  # one byte of one image
+    moved = build(tmp_path / "d", b"\x01\x02", 250.0)
+    (Path(moved["capture"]) / "frames" / "000.png").rename(Path(moved["capture"]) / "frames" / "001.png")
+    assert inputs_digest(moved) != first  # the same bytes under another name
+
+
+def test_runs_on_other_inputs_are_neither_reused_nor_paired(tmp_path, monkeypatch):
+    import json
+
+    bench = _bench_in(tmp_path, monkeypatch)
+    digest = {"value": "aaaa"}
+    monkeypatch.setattr(bench, "inputs_digest", lambda inputs: digest["value"])
+    trained: list[int] = []
+
+    def fake_train(inputs, params, scratch, name):
+        trained.append(params["seed"])
+        return {"metrics": {"seconds": 1.0, **{f"{m}_{s}_psnr": 25.0 for m in bench.MODELS for s in bench.SPLITS}}}
+
+    monkeypatch.setattr(bench, "run_train", fake_train)
+    monkeypatch.setenv("SEEDS_SUBJECT", "bob")
+    monkeypatch.setenv("SEEDS", "0")
+    assert bench.main()["inputs_digest"] == "aaaa" and trained == [0]
+    assert bench.main() and trained == [0]  # the same inputs: reused
+    monkeypatch.setenv("SEEDS_TAG", "v")
+    digest["value"] = "bbbb"  # the subject was rebuilt and its images came out different
+    results = bench.main()
+    assert trained == [0, 0] and "against_default" not in results  # seed 0 of "aaaa" does not pair with "bbbb"
+    # A baseline file written before the bench kept the digest pairs on its source alone.
+    old = json.loads((tmp_path / "bench-results" / "seeds_bob.json").read_text())
+    del old["inputs_digest"]
+    (tmp_path / "bench-results" / "seeds_bob.json").write_text(json.dumps(old))
+    assert bench.main()["against_default"]["seeds"] == [0] and trained == [0, 0]
