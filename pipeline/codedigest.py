@@ -460,10 +460,15 @@ def stage_code_digest(stage: _Declared, module_name: str, root: Path, store: _Di
     return stage_code_version(stage, module_name, root, store).digest
 
 
-def forget_cached_versions(*, resolutions: bool = True) -> None:
+def forget_cached_versions(*, resolutions: bool = True, files: bool = False) -> None:
     """Drop this process's per-stage code versions (files edited while the process runs) and,
-    unless ``resolutions`` is False, which file each module name reaches (files added or removed)."""
+    unless ``resolutions`` is False, which file each module name reaches (files added or removed).
+    With ``files``, also every file's digest and import scan: the next version is computed as a new
+    process would, from the files alone (a cold start, to time against)."""
     _STAGE_CACHE.clear()
+    if files:
+        _FILE_CACHE.clear()
+        _SCAN_CACHE.clear()
     if resolutions:
         _RESOLVED.clear()
         _NEXT.clear()

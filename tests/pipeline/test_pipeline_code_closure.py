@@ -92,7 +92,11 @@ def test_every_closure_edit_makes_exactly_the_importing_stages_stale(tmp_path: P
     assert not any(rel.startswith("avatar/") for rel in closures["calibrate"])
     assert "scene/colour.py" not in closures["sequence"]
 
+    # A cold start (every file read and scanned, as in a new process) is what an edit is timed against.
+    forget_cached_versions(files=True)
+    started = time.perf_counter()
     before = _versions(root, stages)
+    cold = time.perf_counter() - started
     started = time.perf_counter()
     for rel in every_file:
         path = root / rel
@@ -111,9 +115,13 @@ def test_every_closure_edit_makes_exactly_the_importing_stages_stale(tmp_path: P
         path.write_bytes(original)
         _bump_mtime(path)
     assert _versions(root, stages) == before
-    elapsed = time.perf_counter() - started
+    per_edit = (time.perf_counter() - started) / len(every_file)
     assert len(every_file) > 100
-    assert elapsed < 30, f"the sweep over {len(every_file)} files took {elapsed:.1f} s"
+    # Incremental: an edit rereads one file, not the project. Timed against the cold start in the
+    # same run rather than a fixed number of seconds, so a slow or loaded machine does not fail it
+    # (the sweep took 25 s on one and under 15 on another); recomputing everything per edit would
+    # cost about one cold start each.
+    assert per_edit < cold / 4, f"an edit costs {per_edit:.3f} s, a cold start {cold:.3f} s"
 
 
 def test_the_code_versions_of_all_stages_import_no_torch() -> None:
