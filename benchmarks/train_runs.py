@@ -50,13 +50,12 @@ def train_inputs(subject: str, scratch: Path) -> tuple[dict[str, str], str]:
     return {k: str(v) for k, v in folders.items()}, "synthetic capture (tests/stages/train/train_synth.py)"
 
 
-#: Files that record how a stage's run went rather than what it produced (timings, the controller's
-#: clock): they differ between two runs that produced the same data, so no digest of the data reads them.
-_RUN_RECORDS = ("metrics.json", "controller_log.json")
-
-
 def inputs_digest(inputs: dict[str, str]) -> str:
-    """A digest of the train inputs' data: every file of each input folder but its run records.
+    """A digest of the train inputs' data: every file of each input folder but its run record.
+
+    The run record is the runner's ``metrics.json`` (``pipeline.workspace.is_run_record``), timings
+    included; the input stages declare no run records of their own (``Stage.run_records``), so the
+    rest is what the planner's content keys read too.
 
     Two builds of a subject's upstream stages can give different images (another CPU's float
     rounding in the matting network, say) while every figure they print agrees to the digits
@@ -65,10 +64,13 @@ def inputs_digest(inputs: dict[str, str]) -> str:
     """
     import hashlib
 
+    from pipeline.workspace import is_run_record
+
     digest = hashlib.sha256()
     for name in sorted(inputs):
         folder = Path(inputs[name])
-        files = sorted(p for p in folder.rglob("*") if p.is_file() and p.name not in _RUN_RECORDS)
+        files = sorted(p for p in folder.rglob("*")
+                       if p.is_file() and not is_run_record(p.relative_to(folder).as_posix()))
         for path in files:
             digest.update(f"{name}/{path.relative_to(folder).as_posix()}\0".encode())
             with path.open("rb") as handle:

@@ -216,7 +216,6 @@ def test_the_inputs_digest_reads_the_data_and_not_the_run_records(tmp_path):
         (root / "capture" / "frames").mkdir(parents=True)
         (root / "capture" / "frames" / "000.png").write_bytes(image)
         (root / "capture" / "metrics.json").write_text(f'{{"seconds": {seconds}}}')
-        (root / "capture" / "controller_log.json").write_text(f'{{"time_us": {seconds * 1e6}}}')
         (root / "matte").mkdir()
         (root / "matte" / "model.json").write_text("{}")
         return {"capture": str(root / "capture"), "matte": str(root / "matte")}
@@ -227,6 +226,17 @@ def test_the_inputs_digest_reads_the_data_and_not_the_run_records(tmp_path):
     moved = build(tmp_path / "d", b"\x01\x02", 250.0)
     (Path(moved["capture"]) / "frames" / "000.png").rename(Path(moved["capture"]) / "frames" / "001.png")
     assert inputs_digest(moved) != first  # the same bytes under another name
+
+
+def test_the_train_inputs_declare_no_run_records_the_digest_would_miss():
+    """inputs_digest leaves out only the runner's metrics.json: it relies on this."""
+    import importlib
+
+    from benchmarks.train_runs import INPUT_STAGES
+
+    for name in INPUT_STAGES:
+        stage = importlib.import_module(f"stages.{name}.stage").STAGE
+        assert tuple(stage.run_records) == (), name
 
 
 def test_runs_on_other_inputs_are_neither_reused_nor_paired(tmp_path, monkeypatch):
