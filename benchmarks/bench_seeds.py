@@ -20,10 +20,10 @@ as ``curve_ours`` and ``curve_travatar``: [iteration, seconds, PSNR] points, to 
 training the seeds part; each point renders 3 images, so the training time grows a little). Writes ``bench-results/seeds_<subject>.json`` (``seeds_<subject>_<tag>.json`` with a
 tag) after every seed, so a stopped run keeps the seeds it finished; a later run with the same
 settings reuses the seeds that file already holds and trains only the new ones. A tagged run
-also compares itself with a baseline file's runs of the same seeds and data (the same
-digest of the input files: another build of a subject can differ in its images and draw other
-runs for a seed) where there are any (at the iterations each was run with; both are printed): variant - baseline per model and
-split, paired by seed, with the same 95% interval (``against_default`` in its results). The
+also compares itself with a baseline file's runs of the same seeds and data (the same digest of
+the input files: another build of a subject can differ in its images and draw other runs for a
+seed) where there are any (at the iterations each was run with; both are printed): variant -
+baseline per model and split, paired by seed, with the same 95% interval (``against_default`` in its results). The
 baseline is the untagged file, or ``seeds_<subject>_<SEEDS_BASELINE>.json`` when
 ``SEEDS_BASELINE`` names a tag (e.g. ``it5k``, the preset's 5000 iterations on bob). Each run
 records its training wall time (``seconds``, printed as a mean per seed), how many primitives
