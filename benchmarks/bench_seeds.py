@@ -72,13 +72,15 @@ def paired_difference(a: list[float], b: list[float], names: tuple[str, str] = (
     return {"diff_mean": float(diff.mean()), "diff_ci95": [lo, hi], "verdict": verdict}
 
 
+def mean_std(values: list[float], name: str) -> dict:
+    """``{name}_mean`` and ``{name}_std`` (sample std; NaN with one value) of ``values``."""
+    a = np.asarray(values, float)
+    return {f"{name}_mean": float(a.mean()), f"{name}_std": float(a.std(ddof=1)) if len(a) > 1 else float("nan")}
+
+
 def paired_summary(ours: list[float], baseline: list[float]) -> dict:
     """Mean and sample std of each list, and the paired difference ours - baseline with its 95% interval."""
-    a, b = np.asarray(ours, float), np.asarray(baseline, float)
-    n = len(a)
-    std = (lambda x: float(x.std(ddof=1)) if n > 1 else float("nan"))
-    return {"ours_mean": float(a.mean()), "ours_std": std(a), "travatar_mean": float(b.mean()),
-            "travatar_std": std(b), **paired_difference(ours, baseline)}
+    return {**mean_std(ours, "ours"), **mean_std(baseline, "travatar"), **paired_difference(ours, baseline)}
 
 
 def against_default(runs: dict[int, dict], default: dict[int, dict], seeds: list[int],
@@ -214,9 +216,7 @@ def _summary(runs: dict[int, dict], seeds: list[int], models: tuple[str, ...] = 
     if "travatar" in models:
         return {s: paired_summary([runs[x][f"ours_{s}"] for x in seeds], [runs[x][f"travatar_{s}"] for x in seeds])
                 for s in SPLITS}
-    values = {s: np.asarray([runs[x][f"ours_{s}"] for x in seeds], float) for s in SPLITS}
-    return {s: {"ours_mean": float(v.mean()), "ours_std": float(v.std(ddof=1)) if len(v) > 1 else float("nan")}
-            for s, v in values.items()}
+    return {s: mean_std([runs[x][f"ours_{s}"] for x in seeds], "ours") for s in SPLITS}
 
 
 def _tag(variable: str) -> str:
