@@ -11,7 +11,10 @@ from pathlib import Path
 
 from stages.report.html import Section, Table
 
-SPLIT_LABELS = {"novel_light": "novel light", "novel_perf": "novel performance", "novel_both": "both",
+#: Validation first: settings are chosen there (docs/experiments.md, "The validation split"); the test
+#: splits are the claim, measured as they fall.
+SPLIT_LABELS = {"val_light": "validation: light", "val_perf": "validation: performance",
+                "novel_light": "test: novel light", "novel_perf": "test: novel performance", "novel_both": "test: both",
                 "train": "training images (fit)"}
 
 
@@ -27,9 +30,17 @@ def seeds_section(bench_folder: Path, subject: str) -> Section | None:
     except (ValueError, KeyError, TypeError):
         return None
     section = Section("Ours vs TRAvatar* over seeds (PSNR, dB)", "seeds")
+    order = (result.get("params") or {}).get("image_order", "random")
     section.paragraph(f"{len(seeds)} seeds ({', '.join(map(str, seeds))}), {result.get('iterations')} iterations per "
-                      f"model, {result.get('source')}. A split is called for a model only when the 95% interval of "
-                      "the paired difference (same seed, same data) excludes 0.")
+                      f"model, {order} image order, {result.get('source')}. A split is called for a model only when "
+                      "the 95% interval of the paired difference (same seed, same data) excludes 0. Settings are "
+                      "chosen on the validation splits; the test splits are measured as they fall.")
+    # A single seed has no spread (its std is NaN): say nothing rather than "at most nan".
+    widest = max(summary, key=lambda split: summary[split]["ours_std"], default=None) if len(seeds) > 1 else None
+    if widest is not None:
+        # What one run of `make subject` is worth: how far a single seed strays from the mean.
+        section.paragraph(f"One run is one draw of these: ours' standard deviation over the seeds is at most "
+                          f"{summary[widest]['ours_std']:.2f} dB ({SPLIT_LABELS[widest]}).")
     table = Table(["split", "ours mean ± std", "TRAvatar* mean ± std", "ours - TRAvatar*", "95% interval", "verdict"],
                   table_id="seeds-table")
     for split, row in summary.items():
