@@ -67,9 +67,9 @@ class TrainParams(StageParams):
         "random", description="How each batch's (frame, camera) images are drawn: 'random', uniformly with "
         "replacement (as before); 'balanced', the next images of a shuffled pass over every training image, so "
         "each is seen equally often. The ray sampling within an image is the same either way. Both models alike. "
-        "On tiny, 'balanced' left ours' validation PSNR on alice where it was and narrowed its spread over 5 seeds on "
-        "validation four- to sevenfold; it becomes the default once bob and the baseline are measured (docs/experiments.md, "
-        "section 27).")
+        "Leave it at 'random' unless you are experimenting: on tiny, 'balanced' left ours' validation PSNR where it "
+        "was on alice and on bob, and narrowed its spread over 5 seeds on alice's validation but widened it on bob's; "
+        "TRAvatar* gained on bob, not yet measured on alice (docs/experiments.md, sections 27 and 28).")
     loss_weights: LossWeights = Field(default_factory=LossWeights,
                                       description="Weights of the loss terms (photometric, guide mesh, volume, KL, "
                                       "matte); see stages.train.trainer.LossWeights.")
