@@ -46,7 +46,8 @@ class AvatarConfig(BaseModel):
                     "'world' (head space, as the paper) or 'primitive' (each primitive's own rotated axes, so the "
                     "cosine to the surface normal is one input channel everywhere on the UV layout). Both models' "
                     "view directions follow it. The same vectors either way. 'world', the paper's, is the default; "
-                    "'primitive' gained nothing when measured over seeds (docs/experiments.md, section 1).")
+                    "'primitive' gained nothing when measured over seeds, on test figures (docs/experiments.md, "
+                    "section 1) and on validation (section 30).")
     untied_bias: bool = Field(False, description="Every transposed conv of the decoder branches also adds a learnt "
                               "bias per output pixel (MVP's untied biases): each texel's static colour and opacity "
                               "is a parameter of its own. Both models alike. Off by default: on the tiny preset it "
