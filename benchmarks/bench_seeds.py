@@ -33,7 +33,12 @@ tag is then required, so the untagged file the report reads always holds both mo
 is adopted by what it does to ours, and ours alone takes one core, so two such benches run side
 by side on a 2-core CPU and screen two settings in the time of one. Ours' figures are the same,
 seed for seed, as when it trains beside TRAvatar*, and an ours-only run pairs with a baseline file
-of either kind on ours. PSNR only (no LPIPS). About 6 to 8 minutes a seed run alone on a
+of either kind on ours. ``SEEDS_REFERENCE`` (a workspaces root holding another build of the same
+subject, the same frames: a capture setting changed, say ``capture.render.bar_samples``) also scores
+each run on that build's images (``ref_<model>_<split>``, ``benchmarks/cross_build.py``): a capture
+setting changes the targets as well as the training images, and one build's targets judge both.
+Where the baseline file is that build's, or was itself scored on this one, the tagged run's
+``across_builds`` pairs the two builds' models on one build's images. PSNR only (no LPIPS). About 6 to 8 minutes a seed run alone on a
 2-core CPU with the tiny preset (both models side by side, 5000 iterations each: 324 to 348 s of
 training a seed on alice in the realistic studio, plus 1 to 2 minutes of loading; a slower
 machine took 479 to 570 s).
@@ -146,16 +151,27 @@ def main() -> dict:
         scratch = Path(tmp)
         inputs, source = train_inputs(subject, scratch)
         digest = inputs_digest(inputs)
+        reference = _reference_inputs(subject)
+        reference_digest = inputs_digest(reference) if reference else None
         runs = _earlier_runs(path, base, source, models, digest)
+        if reference:
+            # Reuse only seeds already scored on this reference.
+            runs = {x: r for x, r in runs.items() if r.get("reference_digest") == reference_digest}
+            print(f"seeds: each run also scored on {os.environ['SEEDS_REFERENCE']}'s {subject} "
+                  f"(inputs {reference_digest})", flush=True)
         print(f"seeds: {source} (inputs {digest}), {iterations} iterations per model, seeds {seeds}"
               + (f" (seeds {sorted(set(runs) & set(seeds))} from {path.name})" if set(runs) & set(seeds) else ""),
               flush=True)
         for seed in seeds:
             if seed in runs:
                 continue
-            trained = run_train(inputs, {**base, "seed": seed}, scratch, f"seed{seed}")
+            trained = run_train(inputs, {**base, "seed": seed}, scratch, f"seed{seed}",
+                                **({"reference_inputs": reference} if reference else {}))
             m = trained["metrics"]
             runs[seed] = {f"{k}_{s}": m[f"{k}_{s}_psnr"] for k in models for s in SPLITS}
+            if reference:
+                runs[seed].update({f"ref_{k}": v for k, v in trained["reference"].items()})
+                runs[seed]["reference_digest"] = reference_digest
             runs[seed]["seconds"] = m["seconds"]  # training wall time, every model trained
             # Whether the pruning dropped anything (docs/experiments.md, section 22, had to infer it).
             runs[seed]["ours_pruned_primitives"] = m.get("pruned_primitives")
@@ -189,6 +205,7 @@ def main() -> dict:
         print(f"training wall time per seed ({'both models' if len(models) > 1 else 'ours alone'}): "
               f"{np.mean(timed):.0f} s (min {min(timed):.0f}, max {max(timed):.0f}, {len(timed)} seeds)")
     results = {"subject": subject, "source": source, "inputs_digest": digest, "iterations": iterations,
+               "reference_digest": reference_digest,
                "seeds": seeds, "params": base,
                "models": list(models), "complete": True, "runs": {str(k): v for k, v in sorted(runs.items())}, "summary": summary}
     if tag and tag != baseline:
@@ -205,10 +222,67 @@ def main() -> dict:
                     f"{s} {compared[f'{m}_{s}']['diff_mean']:+.2f} [{compared[f'{m}_{s}']['diff_ci95'][0]:+.2f}, "
                     f"{compared[f'{m}_{s}']['diff_ci95'][1]:+.2f}]" for s in SPLITS))
             results["against_default"] = compared
+        across = _across_builds(runs, digest, reference_digest, out / baseline_name, seeds, models)
+        if across:
+            results["across_builds"] = across
         elif baseline and not (out / baseline_name).exists():
             print(f"SEEDS_BASELINE={baseline!r}: no {baseline_name} in {out}; nothing to compare with")
     write_json_atomic(path, results)
     return results
+
+
+def _reference_inputs(subject: str) -> dict[str, str] | None:
+    """``SEEDS_REFERENCE``'s train inputs for ``subject`` (a workspaces root holding another build), or None."""
+    root = os.environ.get("SEEDS_REFERENCE", "").strip()
+    if not root:
+        return None
+    from benchmarks.train_runs import INPUT_STAGES
+    from pipeline.errors import PipelineError
+    from pipeline.workspace import Workspace
+
+    try:
+        ws = Workspace(Path(root).expanduser().resolve(), subject)
+        return {k: str(ws.output_path(k)) for k in INPUT_STAGES}
+    except (PipelineError, OSError) as err:
+        raise SystemExit(f"SEEDS_REFERENCE={root}: no train inputs of subject '{subject}' there ({err}); build them "
+                         f"with `PIPELINE_WORKSPACES={root} pipeline run -S {subject} --until matte`") from err
+
+
+def _across_builds(runs: dict[int, dict], digest: str, reference_digest: str | None, baseline_path: Path,
+                   seeds: list[int], models: tuple[str, ...]) -> dict:
+    """This build's models against the baseline file's, both scored on one build's images, paired by seed.
+
+    ``on_baseline_build``: this run's models on the baseline's images (``SEEDS_REFERENCE`` is the baseline's
+    build) minus the baseline's own figures. ``on_this_build``: this run's own figures minus the baseline's
+    models scored on this build's images (the baseline ran with ``SEEDS_REFERENCE`` set to this build).
+    Either is left out where the files do not hold it.
+    """
+    try:
+        base = json.loads(baseline_path.read_text())
+    except (OSError, ValueError):
+        return {}
+    base_runs = {int(k): v for k, v in base.get("runs", {}).items()}
+    out: dict = {}
+    for name, mine, theirs, wanted in (
+            ("on_baseline_build", "ref_", "", reference_digest is not None and base.get("inputs_digest") == reference_digest),
+            ("on_this_build", "", "ref_", True)):
+        if not wanted:
+            continue
+        shared = [x for x in seeds if x in runs and x in base_runs
+                  and (name == "on_baseline_build" or base_runs[x].get("reference_digest") == digest)
+                  and all(f"{mine}{m}_{s}" in runs[x] and f"{theirs}{m}_{s}" in base_runs[x]
+                          for m in models for s in SPLITS)]
+        if not shared:
+            continue
+        out[name] = {"seeds": shared, **{f"{m}_{s}": paired_difference(
+            [runs[x][f"{mine}{m}_{s}"] for x in shared], [base_runs[x][f"{theirs}{m}_{s}"] for x in shared],
+            ("variant", "baseline")) for m in models for s in SPLITS}}
+        print(f"{name.replace('_', ' ')}: variant - baseline, one build's images, seeds {shared} (95% CI):")
+        for m in models:
+            print(f"  {'ours' if m == 'ours' else 'TRAvatar*':<9} " + ", ".join(
+                f"{s} {out[name][f'{m}_{s}']['diff_mean']:+.2f} [{out[name][f'{m}_{s}']['diff_ci95'][0]:+.2f}, "
+                f"{out[name][f'{m}_{s}']['diff_ci95'][1]:+.2f}]" for s in SPLITS))
+    return out
 
 
 def _summary(runs: dict[int, dict], seeds: list[int], models: tuple[str, ...] = MODELS) -> dict:

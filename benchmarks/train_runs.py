@@ -91,20 +91,30 @@ def _train_once(spec: dict) -> dict:
     workdir = Path(spec["workdir"])
     out = run_stage_in_folder(STAGE, workdir, {k: Path(v) for k, v in spec["inputs"].items()}, spec["params"])
     output = TrainOutput(out)
-    return {"metrics": json.loads((out / "metrics.json").read_text()),
-            "capacity": output.capacity(),
-            "curve": json.loads(output.curve_path.read_text()) if output.curve_path.exists() else {}}
+    result = {"metrics": json.loads((out / "metrics.json").read_text()),
+              "capacity": output.capacity(),
+              "curve": json.loads(output.curve_path.read_text()) if output.curve_path.exists() else {}}
+    if spec.get("reference_inputs"):
+        from benchmarks.cross_build import score_on_build
+
+        result["reference"] = score_on_build(out, {k: Path(v) for k, v in spec["reference_inputs"].items()},
+                                             STAGE.params(**spec["params"]), spill_dir=workdir / "reference_spill")
+    return result
 
 
-def run_train(inputs: dict[str, str], params: dict, scratch: Path, name: str) -> dict:
+def run_train(inputs: dict[str, str], params: dict, scratch: Path, name: str,
+              reference_inputs: dict[str, str] | None = None) -> dict:
     """Run the train stage with ``params`` on ``inputs`` in a child process, working in ``scratch/name``.
 
     Returns ``{"metrics": metrics.json, "capacity": capacity.json, "curve": curve.json}`` of the run; raises
-    ``RuntimeError`` with the end of the child's stderr when it fails.
+    ``RuntimeError`` with the end of the child's stderr when it fails. With ``reference_inputs`` (another
+    build's train inputs, the same frames) it also holds ``"reference"``: the trained models scored on that
+    build's images (``benchmarks.cross_build.score_on_build``).
     """
     spec_path = scratch / f"{name}.json"
     result_path = scratch / f"{name}.result.json"
-    spec = {"inputs": inputs, "params": params, "workdir": str(scratch / name), "result": str(result_path)}
+    spec = {"inputs": inputs, "params": params, "workdir": str(scratch / name), "result": str(result_path),
+            "reference_inputs": reference_inputs}
     spec_path.write_text(json.dumps(spec))
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     proc = subprocess.run([sys.executable, "-m", "benchmarks.train_runs", str(spec_path)],

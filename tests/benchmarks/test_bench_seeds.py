@@ -265,3 +265,41 @@ def test_runs_on_other_inputs_are_neither_reused_nor_paired(tmp_path, monkeypatc
     del old["inputs_digest"]
     (tmp_path / "bench-results" / "seeds_bob.json").write_text(json.dumps(old))
     assert bench.main()["against_default"]["seeds"] == [0] and trained == [0, 0]
+
+
+def test_two_builds_are_paired_on_one_builds_images(tmp_path):
+    """A capture setting: the variant's models on the baseline build's images, and the baseline's on the variant's."""
+    import json
+
+    from benchmarks.bench_seeds import SPLITS, _across_builds
+
+    def run(own: float, ref: float | None, ref_digest: str | None = None) -> dict:
+        r = {f"ours_{s}": own for s in SPLITS}
+        if ref is not None:
+            r.update({f"ref_ours_{s}": ref for s in SPLITS}, reference_digest=ref_digest)
+        return r
+
+    baseline = tmp_path / "seeds_alice_ours_shipped.json"
+    # The baseline build "aaa" (scored on the variant's build "bbb" for seeds 0 and 1 only).
+    baseline.write_text(json.dumps({"inputs_digest": "aaa", "runs": {
+        "0": run(30.0, 29.0, "bbb"), "1": run(30.5, 29.4, "bbb"), "2": run(29.8, None)}}))
+    variant = {0: run(29.0, 30.2, "aaa"), 1: run(29.4, 30.6, "aaa"), 2: run(29.2, 30.1, "aaa")}
+    across = _across_builds(variant, "bbb", "aaa", baseline, [0, 1, 2], ("ours",))
+    on_base = across["on_baseline_build"]
+    assert on_base["seeds"] == [0, 1, 2]
+    assert on_base["ours_val_light"]["diff_mean"] == pytest.approx((0.2 + 0.1 + 0.3) / 3)
+    on_this = across["on_this_build"]
+    assert on_this["seeds"] == [0, 1]  # seed 2 of the baseline was not scored on this build
+    assert on_this["ours_val_perf"]["diff_mean"] == pytest.approx(0.0)
+    # A reference that is not the baseline's build pairs nothing on the baseline's images.
+    assert "on_baseline_build" not in _across_builds(variant, "bbb", "ccc", baseline, [0, 1, 2], ("ours",))
+    assert _across_builds(variant, "bbb", "aaa", tmp_path / "none.json", [0, 1, 2], ("ours",)) == {}
+
+
+def test_a_reference_root_without_the_subject_is_named(tmp_path, monkeypatch):
+    from benchmarks.bench_seeds import _reference_inputs
+
+    assert _reference_inputs("alice") is None  # unset: no cross-build scoring
+    monkeypatch.setenv("SEEDS_REFERENCE", str(tmp_path / "other-build"))
+    with pytest.raises(SystemExit, match=r"SEEDS_REFERENCE=.*other-build.*subject 'alice'.*pipeline run -S alice"):
+        _reference_inputs("alice")
