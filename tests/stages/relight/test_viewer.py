@@ -200,8 +200,12 @@ def _wait(driver, condition: str, timeout: float = 120.0):
 
 
 def _settled(driver) -> None:
-    """Wait until the page shows the frame of the last state it sent."""
-    _wait(driver, "window.viewer.seq > 0 && window.viewer.shownSeq === window.viewer.seq")
+    """Wait until no change is queued and the page shows the frame of the last state it sent.
+
+    Without the queue check a change whose send waits on the next animation frame (late under
+    load) passed as settled on the previous state's frame.
+    """
+    _wait(driver, "!window.viewer.queued && window.viewer.seq > 0 && window.viewer.shownSeq === window.viewer.seq")
 
 
 _HIGHLIGHT_X = """
