@@ -92,6 +92,9 @@ class DecodedGeometry:
     guide_vertices: torch.Tensor  # [B, U, 3]
     feature: torch.Tensor  # [B, C, 8, 8]
     keep: torch.Tensor | None = None  # [P'] long: primitives left after pruning (None = all)
+    # The alpha branch's output before the softplus [B, M_z, N*M, N*M], for the trainer's opacity
+    # floor (``opacity_floor_penalty``); the copies below leave it out (rendering never reads it).
+    raw_alpha: torch.Tensor | None = None
 
     def expand(self, k: int) -> "DecodedGeometry":
         """A batch-1 geometry repeated ``k`` times (views, no copy), e.g. to decode k lights at once."""
@@ -241,7 +244,8 @@ class RelightableMVP(nn.Module):
         raw_alpha = self.alpha_branch(feature)  # [B, M_z, N*M, N*M]
         density = F.softplus(raw_alpha) * self.density_scale
         density = density.view(b, m, n, m, n, m).permute(0, 2, 4, 1, 3, 5).reshape(b, n * n, m, m, m)
-        return DecodedGeometry(centre, rotation, half_extent, density, verts, feature, keep=self.kept_index())
+        return DecodedGeometry(centre, rotation, half_extent, density, verts, feature, keep=self.kept_index(),
+                               raw_alpha=raw_alpha)
 
     def _tile(self, per_prim: torch.Tensor) -> torch.Tensor:
         """Per-primitive values [B, P, C] -> UV image [B, C, N*M, N*M], constant over each M x M tile."""
@@ -309,6 +313,24 @@ class RelightableMVP(nn.Module):
         return (geometry.half_extent.prod(-1) / base).sum(-1).mean() / self.half_extent_m.numel()
 
 
+#: The opacity floor's logit: ``softplus``'s slope there is 3.4e-4 (at -18, where training
+#: without the floor leaves many voxels, it is 1.5e-8), while a box whose voxels all sit there
+#: adds an optical depth of about 7e-4 to a ray: far under the pruning's 0.01, and no visible haze.
+OPACITY_FLOOR_LOGIT = -8.0
+
+
+def opacity_floor_penalty(raw_alpha: torch.Tensor, floor: float = OPACITY_FLOOR_LOGIT) -> torch.Tensor:
+    """Mean squared distance of the opacity logits ``raw_alpha`` below ``floor`` (0 where none is below).
+
+    Why: the matte loss is an L1, whose pull towards zero opacity does not fade as the opacity
+    vanishes, so outside the head it drives the logits ever lower, and the shared kernels carry
+    that into neighbouring voxels of the head. Below about -10 the softplus is flat: a voxel
+    there no longer answers the photometric loss, and a patch of them is a hole that stays
+    open (docs/experiments.md, section 34). The floor keeps every logit where it can still learn.
+    """
+    return F.relu(floor - raw_alpha).pow(2).mean()
+
+
 def kl_divergence(mu: torch.Tensor, logvar: torch.Tensor) -> torch.Tensor:
     """KL(q(z|x) || N(0, I)), averaged over the batch and latent dimensions."""
     return 0.5 * (mu.pow(2) + logvar.exp() - 1.0 - logvar).mean()
@@ -319,4 +341,5 @@ def count_parameters(model: nn.Module) -> int:
     return sum(p.numel() for p in model.parameters() if p.requires_grad)
 
 
-__all__ = ["RelightableMVP", "DecodedGeometry", "MeshEncoder", "kl_divergence", "count_parameters"]
+__all__ = ["RelightableMVP", "DecodedGeometry", "MeshEncoder", "kl_divergence", "count_parameters",
+           "opacity_floor_penalty", "OPACITY_FLOOR_LOGIT"]

@@ -27,8 +27,11 @@ baseline per model and split, paired by seed, with the same 95% interval (``agai
 baseline is the untagged file, or ``seeds_<subject>_<SEEDS_BASELINE>.json`` when
 ``SEEDS_BASELINE`` names a tag (e.g. ``it5k``, the preset's 5000 iterations on bob). Each run
 records its training wall time (``seconds``, printed as a mean per seed), how many primitives
-ours pruned (``ours_pruned_primitives``) and each model's clipped steps (``<model>_clipped_steps``,
-``train.grad_clip_factor``). ``SEEDS_MODELS=ours`` trains ours alone (``train.baseline`` off; a
+ours pruned (``ours_pruned_primitives``), each model's clipped steps (``<model>_clipped_steps``,
+``train.grad_clip_factor``), the share of its opacity logits on the softplus' flat tail
+(``<model>_opacity_logits_below_floor``) and the share of its validation error where it leaves the
+head transparent (``<model>_val_light_uncovered_error_share``, ``..._val_perf_...``): how a run
+that left holes shows. ``SEEDS_MODELS=ours`` trains ours alone (``train.baseline`` off; a
 tag is then required, so the untagged file the report reads always holds both models): a setting
 is adopted by what it does to ours, and ours alone takes one core, so two such benches run side
 by side on a 2-core CPU and screen two settings in the time of one. Ours' figures are the same,
@@ -177,6 +180,12 @@ def main() -> dict:
             runs[seed]["ours_pruned_primitives"] = m.get("pruned_primitives")
             for kind in models:  # how often train.grad_clip_factor bound the step (0 when it is off)
                 runs[seed][f"{kind}_clipped_steps"] = m.get(f"{kind}_clipped_steps")
+            # How a run with holes shows (docs/experiments.md, section 34): flat opacity logits, and
+            # the validation error where the capture's head is rendered transparent.
+            for key in [f"{k}_opacity_logits_below_floor" for k in models] + [
+                    f"{k}_{s}_uncovered_error_share" for k in models for s in ("val_light", "val_perf")]:
+                if key in m:
+                    runs[seed][key] = m[key]
             for kind, curve in trained.get("curve", {}).items():
                 if curve:
                     runs[seed][f"curve_{kind}"] = curve

@@ -35,7 +35,7 @@ from pydantic.dataclasses import dataclass as pydantic_dataclass
 import torch.nn.functional as F
 from torch import nn
 
-from avatar.model import RelightableMVP, kl_divergence
+from avatar.model import RelightableMVP, kl_divergence, opacity_floor_penalty
 from avatar.raymarch import RaymarchKernel, raymarch
 from avatar.render import BasisLights, PointLights, Rays, decode, decode_lights, render
 from avatar.travatar import LightBasis
@@ -65,6 +65,9 @@ class LossWeights:
     kld: float = Field(0.001, ge=0, description="Weight of the encoder's KL divergence.")
     mat: float = Field(0.1, ge=0, description="Weight of the matte loss (L1, matte vs accumulated opacity); raise "
                        "it if the avatar leaks opacity outside the head.")
+    floor: float = Field(0.0, ge=0, description="Weight of the opacity floor (not the paper's): a squared penalty on "
+                         "opacity logits below -8, where the softplus stops learning and holes stay open. 0 = off; "
+                         "turn it on if renders show transparent patches where the matte is solid.")
 
 
 @pydantic_dataclass(frozen=True, config=ConfigDict(extra="forbid"))
@@ -504,10 +507,15 @@ class ModelTrainer:
         mat = (res.alpha - matte).abs().mean()
         w = self.weights
         total = w.pho * pho + w.geo * geo_loss + w.vol * vol + w.kld * kld + w.mat * mat
+        terms = {}
+        if w.floor > 0:
+            floor = opacity_floor_penalty(geo.raw_alpha)
+            total = total + w.floor * floor
+            terms["floor"] = float(floor.detach())
         psnr = float(-10.0 * torch.log10(pho.detach().clamp(min=1e-12)))
         return total, {"loss": float(total.detach()), "pho": float(pho.detach()), "geo": float(geo_loss.detach()),
                        "vol": float(vol.detach()),
-                       "kld": float(kld.detach()), "mat": float(mat.detach()), "psnr": psnr}
+                       "kld": float(kld.detach()), "mat": float(mat.detach()), **terms, "psnr": psnr}
 
     # ---- pruning ---------------------------------------------------------------------------------
     def _recording(self) -> bool:

@@ -106,7 +106,8 @@ def test_a_stopped_run_keeps_its_finished_seeds_and_compares_with_a_named_baseli
             raise KeyboardInterrupt
         trained.append(seed)
         return {"metrics": {"seconds": 1.0, "pruned_primitives": 3 * seed, "ours_clipped_steps": 10 * seed,
-                            "travatar_clipped_steps": 0,
+                            "travatar_clipped_steps": 0, "ours_opacity_logits_below_floor": 0.1 * seed,
+                            "ours_val_light_uncovered_error_share": 0.2, "ours_novel_light_uncovered_error_share": 0.3,
                             **{f"{m}_{s}_psnr": 25.0 + seed + (m == "ours") for m in bench.MODELS for s in bench.SPLITS}}}
 
     monkeypatch.setattr(bench, "run_train", fake_train)
@@ -132,6 +133,10 @@ def test_a_stopped_run_keeps_its_finished_seeds_and_compares_with_a_named_baseli
     assert results["complete"] is True and results["seeds"] == [0, 1, 2]
     assert results["runs"]["2"]["ours_pruned_primitives"] == 6  # kept per seed, from the stage's metrics
     assert (results["runs"]["2"]["ours_clipped_steps"], results["runs"]["2"]["travatar_clipped_steps"]) == (20, 0)
+    # How holes show, kept per seed where the stage reported it; never a test split's.
+    assert results["runs"]["2"]["ours_opacity_logits_below_floor"] == pytest.approx(0.2)
+    assert results["runs"]["2"]["ours_val_light_uncovered_error_share"] == 0.2
+    assert "ours_novel_light_uncovered_error_share" not in results["runs"]["2"]
     compared = results["against_default"]
     assert compared["seeds"] == [0, 2] and compared["baseline_file"] == "seeds_bob_it5k.json"
     assert compared["ours_novel_light"]["diff_mean"] == pytest.approx(1.0)
