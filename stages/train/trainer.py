@@ -55,7 +55,8 @@ class TrainingStopped(RuntimeError):
 
 @pydantic_dataclass(frozen=True, config=ConfigDict(extra="forbid"))
 class LossWeights:
-    """The paper's loss weights (the one declaration: the train stage nests it as ``train.loss_weights``)."""
+    """The loss terms' weights, and the matte term's shape (the one declaration: the train stage nests it as
+    ``train.loss_weights``). The defaults are the paper's."""
 
     pho: float = Field(1.0, ge=0, description="Weight of the photometric (MSE) loss.")
     geo: float = Field(0.1, ge=0, description="Weight of the guide-mesh loss (MSE, cm^2); raise it if the "
@@ -65,6 +66,10 @@ class LossWeights:
     kld: float = Field(0.001, ge=0, description="Weight of the encoder's KL divergence.")
     mat: float = Field(0.1, ge=0, description="Weight of the matte loss (L1, matte vs accumulated opacity); raise "
                        "it if the avatar leaks opacity outside the head.")
+    mat_delta: float = Field(0.0, ge=0, lt=1, description="Opacity error under which the matte loss turns "
+                             "quadratic (a Huber loss; 0 = the paper's L1 throughout). Above it the loss is the L1 "
+                             "less a constant; under it the pull fades with the error instead of driving opacity "
+                             "logits ever lower outside the head. Set it near the matte's own error (e.g. 0.01).")
     floor: float = Field(0.0, ge=0, description="Weight of the opacity floor (not the paper's): a squared penalty on "
                          "opacity logits below -8, where the softplus stops learning and holes stay open. 0 = off; "
                          "turn it on if renders show transparent patches where the matte is solid.")
@@ -504,8 +509,11 @@ class ModelTrainer:
         geo_loss = F.mse_loss(geo.guide_vertices, target_verts) / 1e-4  # cm^2
         vol = model.volume_prior(geo)
         kld = kl_divergence(mu, logvar)
-        mat = (res.alpha - matte).abs().mean()
         w = self.weights
+        if w.mat_delta > 0:  # 0.5 e^2 / delta under delta, |e| - delta / 2 over it: the L1's pull, fading near 0
+            mat = F.smooth_l1_loss(res.alpha, matte, beta=w.mat_delta)
+        else:
+            mat = (res.alpha - matte).abs().mean()
         total = w.pho * pho + w.geo * geo_loss + w.vol * vol + w.kld * kld + w.mat * mat
         terms = {}
         if w.floor > 0:

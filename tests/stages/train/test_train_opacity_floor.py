@@ -75,3 +75,24 @@ def test_a_head_gone_transparent_revives_only_with_the_floor(tensors_and_rendere
             assert abs(rise) < 1e-3, rise  # the photometric and matte losses have no grip on a flat softplus
     finally:
         renderer.model.load_state_dict(state)
+
+
+def test_the_huber_matte_loss_is_the_l1_over_delta_and_quadratic_under_it(tensors_and_renderer, tmp_path):
+    """``train.loss_weights.mat_delta``: the same batch's matte term as an L1 and as a Huber loss."""
+    tensors, renderer = tensors_and_renderer
+
+    def matte_term(delta: float) -> float:
+        tr = trainer_mod.ModelTrainer(renderer, tensors, np.arange(4), iterations=1, batch_size=2,
+                                      rays_per_image=32, lr=1e-3,
+                                      weights=trainer_mod.LossWeights(mat_delta=delta), seed=0,
+                                      ckpt_path=tmp_path / f"h{delta}.pt", checkpoint_every=100,
+                                      spike_factor=1e9, log=logging.getLogger("test"))
+        frames, cams, pix = tr.sample_batch()
+        eps = torch.zeros(2, tr.model.config.latent_dim)
+        with torch.no_grad():
+            return tr.losses(frames, cams, pix, eps)[1]["mat"]
+
+    l1, tiny, whole = matte_term(0.0), matte_term(1e-6), matte_term(0.999)
+    assert l1 > 0.01  # a fresh head's opacity is far from the matte
+    assert tiny == pytest.approx(l1 - 0.5e-6, abs=1e-6)  # every error over delta: the L1 less delta / 2
+    assert 0.0 < whole < 0.5 * l1  # every error under delta: 0.5 e^2 / delta <= 0.5 |e|
