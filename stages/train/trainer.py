@@ -69,10 +69,12 @@ class LossWeights:
     mat_delta: float = Field(0.0, ge=0, lt=1, description="Opacity error under which the matte loss turns "
                              "quadratic (a Huber loss; 0 = the paper's L1 throughout). Above it the loss is the L1 "
                              "less a constant; under it the pull fades with the error instead of driving opacity "
-                             "logits ever lower outside the head. Set it near the matte's own error (e.g. 0.01).")
+                             "logits ever lower outside the head. Set it near the matte's own error (e.g. 0.01); "
+                             "docs/experiments.md, section 34 measures it.")
     floor: float = Field(0.0, ge=0, description="Weight of the opacity floor (not the paper's): a squared penalty on "
                          "opacity logits below -8, where the softplus stops learning and holes stay open. 0 = off; "
-                         "turn it on if renders show transparent patches where the matte is solid.")
+                         "turn it on if renders show transparent patches where the matte is solid (it cost alice 0.25 dB "
+                         "where none formed: docs/experiments.md, section 34).")
 
 
 @pydantic_dataclass(frozen=True, config=ConfigDict(extra="forbid"))
