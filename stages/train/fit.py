@@ -15,7 +15,7 @@ from typing import Any
 
 import torch
 
-from avatar.model import RelightableMVP, count_parameters
+from avatar.model import OPACITY_FLOOR_LOGIT, RelightableMVP, count_parameters
 from avatar.raymarch import RaymarchKernel
 from pipeline.stage import Progress
 from stages.train.assess_images import AssessImages
@@ -60,14 +60,12 @@ class TrainedHeads:
         return out
 
 
-def _share_below_floor(model) -> float:
+def _share_below_floor(model: RelightableMVP) -> float:
     """Share of the opacity logits under ``OPACITY_FLOOR_LOGIT`` at the latent prior's mean (z = 0).
 
     Logits there sit on the softplus' flat tail: a large share is how a run that left holes in
     the head shows (docs/experiments.md, section 34), whether or not ``train.loss_weights.floor`` is on.
     """
-    from avatar.model import OPACITY_FLOOR_LOGIT
-
     with torch.no_grad():
         z = torch.zeros(1, model.config.latent_dim, device=model.prim_keep.device)
         raw = model.decode_geometry(z).raw_alpha
