@@ -331,6 +331,18 @@ def opacity_floor_penalty(raw_alpha: torch.Tensor, floor: float = OPACITY_FLOOR_
     return F.relu(floor - raw_alpha).pow(2).mean()
 
 
+def share_below_floor(model: RelightableMVP, floor: float = OPACITY_FLOOR_LOGIT) -> float:
+    """Share of ``model``'s opacity logits under ``floor`` at the latent prior's mean (z = 0).
+
+    Logits there sit on the softplus' flat tail: a large share is how a run that left holes in
+    the head can show, whether or not the floor penalty was on (docs/experiments.md, section 34).
+    """
+    with torch.no_grad():
+        z = torch.zeros(1, model.config.latent_dim, device=model.prim_keep.device)
+        raw = model.decode_geometry(z).raw_alpha
+    return float((raw < floor).float().mean())
+
+
 def kl_divergence(mu: torch.Tensor, logvar: torch.Tensor) -> torch.Tensor:
     """KL(q(z|x) || N(0, I)), averaged over the batch and latent dimensions."""
     return 0.5 * (mu.pow(2) + logvar.exp() - 1.0 - logvar).mean()
@@ -342,4 +354,4 @@ def count_parameters(model: nn.Module) -> int:
 
 
 __all__ = ["RelightableMVP", "DecodedGeometry", "MeshEncoder", "kl_divergence", "count_parameters",
-           "opacity_floor_penalty", "OPACITY_FLOOR_LOGIT"]
+           "opacity_floor_penalty", "share_below_floor", "OPACITY_FLOOR_LOGIT"]

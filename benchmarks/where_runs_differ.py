@@ -26,7 +26,7 @@ import torch
 
 from avatar.io import load_trained
 from avatar.metrics import exposure_scale, psnr
-from avatar.model import OPACITY_FLOOR_LOGIT
+from avatar.model import share_below_floor
 from stages.train.evaluate import SCALED_SPLITS, eval_pairs
 from stages.train.output import TrainOutput
 from stages.train.setup import TrainingSetup
@@ -43,9 +43,7 @@ def _renders(run: Path, kind: str, setup: TrainingSetup, pairs: dict[str, list],
     model, _ = TrainOutput(run).model(lambda folder: load_trained(folder, "cpu"), kind)
     renderer = Renderer(model, kind, setup.basis if kind == "travatar" else None, setup.basis_bars, kernel)
     out = {name: setup.assess.render(renderer, p) for name, p in pairs.items()}
-    with torch.no_grad():
-        raw = model.decode_geometry(torch.zeros(1, model.config.latent_dim)).raw_alpha
-    return out, float((raw < OPACITY_FLOOR_LOGIT).float().mean())
+    return out, share_below_floor(model)
 
 
 def compare_runs(run_a: Path, run_b: Path, setup: TrainingSetup, kernel, kind: str = "ours",

@@ -15,7 +15,7 @@ from typing import Any
 
 import torch
 
-from avatar.model import OPACITY_FLOOR_LOGIT, RelightableMVP, count_parameters
+from avatar.model import RelightableMVP, count_parameters, share_below_floor
 from avatar.raymarch import RaymarchKernel
 from pipeline.stage import Progress
 from stages.train.assess_images import AssessImages
@@ -56,20 +56,8 @@ class TrainedHeads:
             out[f"{kind}_clipped_steps"] = state.clipped_steps
             out[f"{kind}_pruned_primitives"] = model.num_pruned
             out[f"{kind}_primitives"] = model.config.num_prims
-            out[f"{kind}_opacity_logits_below_floor"] = _share_below_floor(model)
+            out[f"{kind}_opacity_logits_below_floor"] = share_below_floor(model)
         return out
-
-
-def _share_below_floor(model: RelightableMVP) -> float:
-    """Share of the opacity logits under ``OPACITY_FLOOR_LOGIT`` at the latent prior's mean (z = 0).
-
-    Logits there sit on the softplus' flat tail: a large share is how a run that left holes in
-    the head shows (docs/experiments.md, section 34), whether or not ``train.loss_weights.floor`` is on.
-    """
-    with torch.no_grad():
-        z = torch.zeros(1, model.config.latent_dim, device=model.prim_keep.device)
-        raw = model.decode_geometry(z).raw_alpha
-    return float((raw < OPACITY_FLOOR_LOGIT).float().mean())
 
 
 def fit_heads(setup: TrainingSetup, num_bars: int, params: TrainParams, device: torch.device,
