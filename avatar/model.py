@@ -175,6 +175,10 @@ class RelightableMVP(nn.Module):
         # Primitives still raymarched (False = pruned as empty); saved with the weights.
         self.register_buffer("prim_keep", torch.ones(n * n, dtype=torch.bool))
         self._register_load_state_dict_pre_hook(self._default_prim_keep)
+        # Training only (the trainer sets it from ``train.loss_weights.lift``; never saved): opacity
+        # logits under this value answer pulls towards more opacity with the softplus' slope here
+        # (``lifted_softplus``). None = the plain softplus. The forward pass is the same either way.
+        self.lift_below_logit: float | None = None
 
     def _default_prim_keep(self, state_dict, prefix, *args, **kwargs) -> None:
         """Heads saved before pruning existed have no ``prim_keep``: every primitive is kept."""
@@ -242,7 +246,10 @@ class RelightableMVP(nn.Module):
         # prim_overlap): the volume prior keeps primitives tight but cannot open holes.
         half_extent = half0 * (1.0 + torch.sigmoid(delta[..., 6:9] + _SCALE_INIT))
         raw_alpha = self.alpha_branch(feature)  # [B, M_z, N*M, N*M]
-        density = F.softplus(raw_alpha) * self.density_scale
+        if self.lift_below_logit is None:
+            density = F.softplus(raw_alpha) * self.density_scale
+        else:
+            density = lifted_softplus(raw_alpha, self.lift_below_logit) * self.density_scale
         density = density.view(b, m, n, m, n, m).permute(0, 2, 4, 1, 3, 5).reshape(b, n * n, m, m, m)
         return DecodedGeometry(centre, rotation, half_extent, density, verts, feature, keep=self.kept_index(),
                                raw_alpha=raw_alpha)
@@ -319,6 +326,38 @@ class RelightableMVP(nn.Module):
 OPACITY_FLOOR_LOGIT = -8.0
 
 
+class _LiftedSoftplus(torch.autograd.Function):
+    """``softplus`` whose backward gives logits under ``floor`` the slope at ``floor`` when the pull is upwards."""
+
+    @staticmethod
+    def forward(ctx, raw: torch.Tensor, floor: float) -> torch.Tensor:
+        ctx.save_for_backward(raw)
+        ctx.floor = floor
+        return F.softplus(raw)
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor) -> tuple[torch.Tensor, None]:
+        (raw,) = ctx.saved_tensors
+        slope = torch.sigmoid(raw)  # softplus' true slope
+        # grad < 0: a descent step raises the logit (the loss wants more opacity there).
+        lifted = (raw < ctx.floor) & (grad < 0)
+        slope = torch.where(lifted, torch.full_like(slope, float(torch.sigmoid(torch.tensor(ctx.floor)))), slope)
+        return grad * slope, None
+
+
+def lifted_softplus(raw_alpha: torch.Tensor, floor: float = OPACITY_FLOOR_LOGIT) -> torch.Tensor:
+    """``softplus(raw_alpha)``, with a surrogate gradient for logits on its flat tail (not the paper's).
+
+    The value is the softplus' own. In the backward pass, a logit under ``floor`` whose loss
+    gradient asks for more opacity gets the softplus' slope at ``floor`` (3.4e-4 at -8) instead of
+    its own, which vanishes (1.5e-8 at -18, 1e-21 at -48); a pull towards less opacity keeps the
+    true slope. So a voxel that went transparent where the head is solid still hears the
+    photometric and matte losses and can refill (a hole, docs/experiments.md, section 34), while
+    nothing holds the logits of empty space up, as ``opacity_floor_penalty`` does.
+    """
+    return _LiftedSoftplus.apply(raw_alpha, float(floor))
+
+
 def opacity_floor_penalty(raw_alpha: torch.Tensor, floor: float = OPACITY_FLOOR_LOGIT) -> torch.Tensor:
     """Mean squared distance of the opacity logits ``raw_alpha`` below ``floor`` (0 where none is below).
 
@@ -354,4 +393,4 @@ def count_parameters(model: nn.Module) -> int:
 
 
 __all__ = ["RelightableMVP", "DecodedGeometry", "MeshEncoder", "kl_divergence", "count_parameters",
-           "opacity_floor_penalty", "share_below_floor", "OPACITY_FLOOR_LOGIT"]
+           "opacity_floor_penalty", "share_below_floor", "lifted_softplus", "OPACITY_FLOOR_LOGIT"]

@@ -91,6 +91,34 @@ def paired_summary(ours: list[float], baseline: list[float]) -> dict:
     return {**mean_std(ours, "ours"), **mean_std(baseline, "travatar"), **paired_difference(ours, baseline)}
 
 
+def uncovered_spread(runs: dict[int, dict], seeds: list[int], models: tuple[str, ...] = MODELS) -> dict:
+    """How much of each model's spread over ``seeds`` sits where it leaves the capture's head transparent.
+
+    Per model and validation split: the PSNR's mean and sample std; the correlation over seeds of
+    the PSNR with the uncovered error share (the share of the split's squared error on foreground
+    pixels the render leaves transparent, ``stages.train.evaluate.coverage_metrics``); and the
+    mean and std of the PSNR the rest of the error alone would give, PSNR - 10 log10(1 - share).
+    A narrow spread there with a wide one in the PSNR says that the runs differ in their holes and
+    silhouettes rather than in the head they do cover. Seeds without the share are left out; a
+    split with fewer than 3 such seeds is left out.
+    """
+    out: dict = {}
+    for m in models:
+        for split in ("val_light", "val_perf"):
+            key = f"{m}_{split}_uncovered_error_share"
+            held = [x for x in seeds if x in runs and key in runs[x]]
+            if len(held) < 3:
+                continue
+            psnr = np.asarray([runs[x][f"{m}_{split}"] for x in held], float)
+            share = np.asarray([runs[x][key] for x in held], float)
+            rest = psnr - 10.0 * np.log10(np.clip(1.0 - share, 1e-12, None))
+            flat = float(share.std()) == 0.0 or float(psnr.std()) == 0.0
+            out[f"{m}_{split}"] = {"seeds": held, **mean_std(list(psnr), "psnr"), **mean_std(list(rest), "covered_psnr"),
+                                   "share_min": float(share.min()), "share_max": float(share.max()),
+                                   "correlation": float("nan") if flat else float(np.corrcoef(psnr, share)[0, 1])}
+    return out
+
+
 def against_default(runs: dict[int, dict], default: dict[int, dict], seeds: list[int],
                     models: tuple[str, ...] = MODELS) -> dict:
     """Variant - default per ``<model>_<split>`` of ``models`` over the ``seeds`` both hold (paired by seed); {} if none."""
@@ -209,6 +237,13 @@ def main() -> dict:
         print(f"{'split':<12} {'ours':>13}")
         for s, r in summary.items():
             print(f"{s:<12} {r['ours_mean']:6.2f} ± {r['ours_std']:4.2f}")
+    uncovered = uncovered_spread(runs, seeds, models)
+    if uncovered:
+        print("where the spread sits: PSNR, and the PSNR of the error off the pixels the head leaves transparent")
+        for key, r in uncovered.items():
+            print(f"  {key:<18} {r['psnr_mean']:6.2f} ± {r['psnr_std']:4.2f}   without them {r['covered_psnr_mean']:6.2f} ± "
+                  f"{r['covered_psnr_std']:4.2f}   uncovered error share {r['share_min']:.2f}-{r['share_max']:.2f}, "
+                  f"correlation with PSNR {r['correlation']:+.2f}")
     timed = [runs[x]["seconds"] for x in seeds if "seconds" in runs[x]]
     if timed:
         print(f"training wall time per seed ({'both models' if len(models) > 1 else 'ours alone'}): "
@@ -216,7 +251,8 @@ def main() -> dict:
     results = {"subject": subject, "source": source, "inputs_digest": digest, "iterations": iterations,
                "reference_digest": reference_digest,
                "seeds": seeds, "params": base,
-               "models": list(models), "complete": True, "runs": {str(k): v for k, v in sorted(runs.items())}, "summary": summary}
+               "models": list(models), "complete": True, "runs": {str(k): v for k, v in sorted(runs.items())}, "summary": summary,
+               "uncovered_spread": uncovered}
     if tag and tag != baseline:
         baseline_name = f"seeds_{subject}_{baseline}.json" if baseline else f"seeds_{subject}.json"
         default_iterations, default = _default_runs(out / baseline_name, source, models, digest)

@@ -35,7 +35,7 @@ from pydantic.dataclasses import dataclass as pydantic_dataclass
 import torch.nn.functional as F
 from torch import nn
 
-from avatar.model import RelightableMVP, kl_divergence, opacity_floor_penalty
+from avatar.model import OPACITY_FLOOR_LOGIT, RelightableMVP, kl_divergence, opacity_floor_penalty
 from avatar.raymarch import RaymarchKernel, raymarch
 from avatar.render import BasisLights, PointLights, Rays, decode, decode_lights, render
 from avatar.travatar import LightBasis
@@ -55,8 +55,8 @@ class TrainingStopped(RuntimeError):
 
 @pydantic_dataclass(frozen=True, config=ConfigDict(extra="forbid"))
 class LossWeights:
-    """The loss terms' weights, and the matte term's shape (the one declaration: the train stage nests it as
-    ``train.loss_weights``). The defaults are the paper's."""
+    """The loss terms' weights, the matte term's shape and the opacity's gradient on its flat tail (the one
+    declaration: the train stage nests it as ``train.loss_weights``). The defaults are the paper's."""
 
     pho: float = Field(1.0, ge=0, description="Weight of the photometric (MSE) loss.")
     geo: float = Field(0.1, ge=0, description="Weight of the guide-mesh loss (MSE, cm^2); raise it if the "
@@ -75,6 +75,11 @@ class LossWeights:
                          "opacity logits below -8, where the softplus stops learning and holes stay open. 0 = off; "
                          "turn it on if renders show transparent patches where the matte is solid (docs/experiments.md, "
                          "section 34: it closed such a hole, and cost accuracy where none formed).")
+    lift: bool = Field(False, description="Surrogate gradient on the opacity's flat tail (not the paper's): opacity "
+                       "logits below -8 answer pulls towards more opacity with the softplus' slope at -8 instead of "
+                       "their own vanishing one, so a transparent patch where the matte is solid can refill; pulls "
+                       "towards less opacity, and every render, are unchanged. Off = the paper's softplus; "
+                       "docs/experiments.md, section 36 measures it.")
 
 
 @pydantic_dataclass(frozen=True, config=ConfigDict(extra="forbid"))
@@ -315,6 +320,7 @@ class ModelTrainer:
         self.train_frames = np.asarray(train_frames)
         self.iterations, self.batch_size, self.rays = iterations, batch_size, rays_per_image
         self.weights, self.ckpt_path, self.checkpoint_every = weights, ckpt_path, checkpoint_every
+        self.model.lift_below_logit = OPACITY_FLOOR_LOGIT if weights.lift else None
         self.spike_factor, self.log = spike_factor, log
         self.lr_decay_to = lr_decay_to
         if lr_warmup_iterations < 0:

@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import pytest
 
-from benchmarks.bench_seeds import paired_summary
+from benchmarks.bench_seeds import paired_summary, uncovered_spread
 
 
 def test_a_consistent_lead_is_called_and_a_tie_is_not():
@@ -308,3 +309,25 @@ def test_a_reference_root_without_the_subject_is_named(tmp_path, monkeypatch):
     monkeypatch.setenv("SEEDS_REFERENCE", str(tmp_path / "other-build"))
     with pytest.raises(SystemExit, match=r"SEEDS_REFERENCE=.*other-build.*subject 'alice'.*pipeline run -S alice"):
         _reference_inputs("alice")
+
+
+def test_the_spread_in_the_uncovered_pixels_is_told_from_the_rest():
+    # The same error on the covered pixels every seed, and a hole of another size each: the spread is all
+    # in the uncovered pixels, so without them it vanishes, and a bigger hole is a lower PSNR.
+    covered = 1e-3
+    runs = {}
+    for seed, hole in enumerate([0.0, 2e-4, 5e-4, 1e-3]):
+        total = covered + hole
+        runs[seed] = {"ours_val_light": -10 * math.log10(total), "ours_val_light_uncovered_error_share": hole / total,
+                      "ours_val_perf": 30.0 + seed, "ours_val_perf_uncovered_error_share": 0.2}
+    runs[4] = {"ours_val_light": 20.0, "ours_val_perf": 20.0}  # a run from before the share was kept: left out
+    spread = uncovered_spread(runs, [0, 1, 2, 3, 4], ("ours",))
+    light = spread["ours_val_light"]
+    assert light["seeds"] == [0, 1, 2, 3]
+    assert light["psnr_std"] > 0.5 and light["covered_psnr_std"] < 1e-9
+    assert light["covered_psnr_mean"] == pytest.approx(30.0)
+    assert light["correlation"] < -0.9 and light["share_max"] == pytest.approx(0.5)
+    # The same share every seed: the spread is all off the uncovered pixels, and no correlation is claimed.
+    perf = spread["ours_val_perf"]
+    assert perf["covered_psnr_std"] == pytest.approx(perf["psnr_std"]) and math.isnan(perf["correlation"])
+    assert uncovered_spread(runs, [0, 1], ("ours",)) == {}  # two seeds tell no spread

@@ -1,4 +1,4 @@
-"""The opacity floor (``train.loss_weights.floor``): logits kept where the softplus still learns."""
+"""The opacity floor (``train.loss_weights.floor``) and the lifted gradient (``lift``): logits that can still learn."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from avatar.model import OPACITY_FLOOR_LOGIT, opacity_floor_penalty
+from avatar.model import OPACITY_FLOOR_LOGIT, lifted_softplus, opacity_floor_penalty
 from stages.train import trainer as trainer_mod
 
 
@@ -22,6 +22,22 @@ def test_the_penalty_is_zero_above_the_floor_and_squared_below():
     # Only the logits below the floor are pushed, and upwards (a descent step raises them).
     assert raw.grad[:3].abs().max() == 0.0
     assert raw.grad[3] == pytest.approx(-2 * 2.0 / 5) and raw.grad[4] == pytest.approx(-2 * 4.0 / 5)
+
+
+def test_the_lifted_softplus_changes_only_upward_pulls_under_the_floor():
+    raw = torch.tensor([2.0, -5.0, -20.0, -20.0, -48.0], dtype=torch.float64)
+    pull = torch.tensor([1.0, -1.0, 1.0, -1.0, -1.0], dtype=torch.float64)  # d loss / d softplus
+    plain, lifted = raw.clone().requires_grad_(), raw.clone().requires_grad_()
+    (F.softplus(plain) * pull).sum().backward()
+    value = lifted_softplus(lifted)
+    (value * pull).sum().backward()
+    torch.testing.assert_close(value.detach(), F.softplus(raw))  # the forward pass is the softplus itself
+    # Above the floor, and a downward pull under it: the true slope.
+    torch.testing.assert_close(lifted.grad[:3], plain.grad[:3])
+    # An upward pull under the floor: the slope at the floor, not the vanishing one.
+    at_floor = torch.sigmoid(torch.tensor(OPACITY_FLOOR_LOGIT, dtype=torch.float64))
+    torch.testing.assert_close(lifted.grad[3:], -at_floor.expand(2))
+    assert float(plain.grad[4].abs()) < 1e-20
 
 
 def test_the_floor_is_where_a_box_is_still_empty():
@@ -50,9 +66,10 @@ def _raw_mean(trainer) -> float:
         return float(trainer.model.decode_geometry(torch.zeros(1, trainer.model.config.latent_dim)).raw_alpha.mean())
 
 
-@pytest.mark.parametrize("floor", [0.0, 1.0])
-def test_a_head_gone_transparent_revives_only_with_the_floor(tensors_and_renderer, tmp_path, floor):
-    """Every opacity logit at -40: the softplus is flat there, so without the floor nothing moves them."""
+@pytest.mark.parametrize("floor, lift", [(0.0, False), (1.0, False), (0.0, True)])
+def test_a_head_gone_transparent_revives_only_with_the_floor_or_the_lift(tensors_and_renderer, tmp_path, floor,
+                                                                          lift):
+    """Every opacity logit at -40: the softplus is flat there, so without the floor or the lift nothing moves them."""
     tensors, renderer = tensors_and_renderer
     state = {k: v.clone() for k, v in renderer.model.state_dict().items()}
     try:
@@ -61,7 +78,8 @@ def test_a_head_gone_transparent_revives_only_with_the_floor(tensors_and_rendere
             last.weight.zero_()
             last.bias.fill_(-40.0)
         tr = trainer_mod.ModelTrainer(renderer, tensors, np.arange(4), iterations=20, batch_size=2,
-                                      rays_per_image=16, lr=1e-2, weights=trainer_mod.LossWeights(floor=floor),
+                                      rays_per_image=16, lr=1e-2,
+                                      weights=trainer_mod.LossWeights(floor=floor, lift=lift),
                                       seed=0, ckpt_path=tmp_path / f"m{floor}.pt", checkpoint_every=100,
                                       spike_factor=1e9, log=logging.getLogger("test"))
         before = _raw_mean(tr)
@@ -70,11 +88,16 @@ def test_a_head_gone_transparent_revives_only_with_the_floor(tensors_and_rendere
         if floor:
             assert all("floor" in t for t in terms) and terms[-1]["floor"] < terms[0]["floor"]
             assert rise > 0.1, rise  # Adam's steps of about lr x 20 on the bias alone give 0.2
+        elif lift:
+            assert all("floor" not in t for t in terms)
+            assert tr.model.lift_below_logit == OPACITY_FLOOR_LOGIT
+            assert rise > 0.1, rise  # the matte loss's pull on the foreground now reaches the logits
         else:
             assert all("floor" not in t for t in terms)
             assert abs(rise) < 1e-3, rise  # the photometric and matte losses have no grip on a flat softplus
     finally:
         renderer.model.load_state_dict(state)
+        renderer.model.lift_below_logit = None
 
 
 def test_the_huber_matte_loss_is_the_l1_over_delta_and_quadratic_under_it(tensors_and_renderer, tmp_path):
