@@ -49,4 +49,32 @@ def seeds_section(bench_folder: Path, subject: str) -> Section | None:
                    f"{row['travatar_mean']:.2f} ± {row['travatar_std']:.2f}", f"{row['diff_mean']:+.2f}",
                    f"[{lo:+.2f}, {hi:+.2f}]", str(row["verdict"])])
     section.table(table)
+    where = _where_the_spread_sits(result.get("uncovered_spread"))
+    if where:
+        section.paragraph(where)
     return section
+
+
+def _where_the_spread_sits(uncovered: object) -> str:
+    """A sentence on how much of ours' validation spread is in pixels the head leaves transparent, or ''.
+
+    ``uncovered`` is the bench's ``uncovered_spread`` (``benchmarks.bench_seeds.uncovered_spread``);
+    files written before it was kept have none, and say nothing.
+    """
+    if not isinstance(uncovered, dict):
+        return ""
+    parts = []
+    for split in ("val_light", "val_perf"):
+        row = uncovered.get(f"ours_{split}")
+        try:
+            parts.append(f"{SPLIT_LABELS[split]}: {float(row['psnr_std']):.2f} dB, {float(row['covered_psnr_std']):.2f} "
+                         f"dB without them (correlation of the PSNR with their share of the error "
+                         f"{float(row['correlation']):+.2f})")
+        except (TypeError, KeyError, ValueError):
+            continue
+    if not parts:
+        return ""
+    return ("Where ours' spread sits: its standard deviation over the seeds, and that of the PSNR its error off the "
+            "foreground pixels it renders transparent would give; " + "; ".join(parts) + ". A much smaller spread "
+            "without them, with a negative correlation, says the runs differ in which parts of the head they leave "
+            "uncovered more than in the head they cover.")

@@ -28,6 +28,16 @@ def test_seeds_section_shows_means_intervals_and_verdicts(tmp_path: Path) -> Non
     assert "at most 0.71 dB (test: both)" in html  # the widest spread of ours, the novel-both split's
     assert "ours ahead" in html and "TRAvatar* ahead" in html and "not resolved" in html
     assert "24.50 ± 0.50" in html  # ours, novel light
+    assert "spread sits" not in html  # a file from before the bench kept the uncovered shares
+    result["uncovered_spread"] = {"ours_val_light": {"psnr_std": 0.67, "covered_psnr_std": 0.2, "correlation": -0.96},
+                                  "travatar_val_light": {"psnr_std": 0.26, "covered_psnr_std": 0.04,
+                                                         "correlation": -0.99}}
+    (tmp_path / "seeds_alice.json").write_text(json.dumps(result))
+    html = "".join(seeds_section(tmp_path, "alice").parts)
+    assert "spread sits" in html
+    assert "validation: light: 0.67 dB, 0.20 dB without them (correlation of the PSNR with their share of the error " \
+           "-0.96)" in html
+    assert "validation: performance:" not in html  # no figures for that split: nothing claimed
     assert seeds_section(tmp_path, "bob") is None  # another subject's run is not shown
     (tmp_path / "seeds_alice.json").write_text("{not json")
     assert seeds_section(tmp_path, "alice") is None
