@@ -6,6 +6,7 @@ Everything lives in head space (metres); ``cam_pos`` and ``light_pos`` are head-
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -338,10 +339,9 @@ class _LiftedSoftplus(torch.autograd.Function):
     @staticmethod
     def backward(ctx, grad: torch.Tensor) -> tuple[torch.Tensor, None]:
         (raw,) = ctx.saved_tensors
-        slope = torch.sigmoid(raw)  # softplus' true slope
         # grad < 0: a descent step raises the logit (the loss wants more opacity there).
         lifted = (raw < ctx.floor) & (grad < 0)
-        slope = torch.where(lifted, torch.full_like(slope, float(torch.sigmoid(torch.tensor(ctx.floor)))), slope)
+        slope = torch.sigmoid(raw).masked_fill(lifted, 1.0 / (1.0 + math.exp(-ctx.floor)))  # softplus' slope, lifted
         return grad * slope, None
 
 
