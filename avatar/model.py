@@ -244,7 +244,9 @@ class RelightableMVP(nn.Module):
         centre = base + (tbn @ (torch.tanh(delta[..., :3, None]) * half0[..., None]))[..., 0]
         rotation = tbn @ _rodrigues(delta[..., 3:6])
         # Scales stay within [1, 2] x the base size (which overlaps the neighbours by
-        # prim_overlap): the volume prior keeps primitives tight but cannot open holes.
+        # prim_overlap). The grid at its base size leaves the edges of the layout (shoulders,
+        # back of the head) partly outside every box: a volume prior strong enough to press every
+        # box to its base opens holes there (share_of_boxes_at_smallest).
         half_extent = half0 * (1.0 + torch.sigmoid(delta[..., 6:9] + _SCALE_INIT))
         raw_alpha = self.alpha_branch(feature)  # [B, M_z, N*M, N*M]
         if self.lift_below_logit is None:
@@ -382,6 +384,27 @@ def share_below_floor(model: RelightableMVP, floor: float = OPACITY_FLOOR_LOGIT)
     return float((raw < floor).float().mean())
 
 
+#: A box within this fraction of its base volume counts as pressed to its smallest size.
+SMALLEST_BOX_TOLERANCE = 0.01
+
+
+def share_of_boxes_at_smallest(model: RelightableMVP, tolerance: float = SMALLEST_BOX_TOLERANCE) -> float:
+    """Share of ``model``'s kept boxes whose volume at the latent prior's mean (z = 0) is within ``tolerance``
+    of their base volume, the smallest a box can have.
+
+    A box's half-extent is ``base * (1 + sigmoid(delta))``: it can only grow from its base, and the
+    sigmoid is flat where the volume prior presses it, so a box held there hardly answers a ray asking
+    it to reach further. When nearly every box sits there, the boxes at the layout's edges cannot
+    stretch over the shoulders and the back of the head, and the run leaves them transparent
+    (docs/experiments.md, section 37).
+    """
+    with torch.no_grad():
+        z = torch.zeros(1, model.config.latent_dim, device=model.prim_keep.device)
+        half_extent = model.decode_geometry(z).half_extent[0]  # [P, 3]
+        ratio = (half_extent / model.half_extent_m[:, None]).prod(-1)  # [P] volume over base volume
+    return float((ratio[model.prim_keep] < 1.0 + tolerance).float().mean())
+
+
 def kl_divergence(mu: torch.Tensor, logvar: torch.Tensor) -> torch.Tensor:
     """KL(q(z|x) || N(0, I)), averaged over the batch and latent dimensions."""
     return 0.5 * (mu.pow(2) + logvar.exp() - 1.0 - logvar).mean()
@@ -393,4 +416,5 @@ def count_parameters(model: nn.Module) -> int:
 
 
 __all__ = ["RelightableMVP", "DecodedGeometry", "MeshEncoder", "kl_divergence", "count_parameters",
-           "opacity_floor_penalty", "share_below_floor", "lifted_softplus", "OPACITY_FLOOR_LOGIT"]
+           "opacity_floor_penalty", "share_below_floor", "share_of_boxes_at_smallest", "lifted_softplus",
+           "OPACITY_FLOOR_LOGIT", "SMALLEST_BOX_TOLERANCE"]

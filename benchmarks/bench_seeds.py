@@ -211,6 +211,7 @@ def main() -> dict:
             # How a run with holes shows (docs/experiments.md, section 34): flat opacity logits, and
             # the validation error where the capture's head is rendered transparent.
             for key in [f"{k}_opacity_logits_below_floor" for k in models] + [
+                    f"{k}_boxes_at_smallest_size" for k in models] + [
                     f"{k}_{s}_uncovered_error_share" for k in models for s in ("val_light", "val_perf")]:
                 if key in m:
                     runs[seed][key] = m[key]

@@ -15,7 +15,7 @@ from typing import Any
 
 import torch
 
-from avatar.model import RelightableMVP, count_parameters, share_below_floor
+from avatar.model import RelightableMVP, count_parameters, share_below_floor, share_of_boxes_at_smallest
 from avatar.raymarch import RaymarchKernel
 from pipeline.stage import Progress
 from stages.train.assess_images import AssessImages
@@ -57,6 +57,7 @@ class TrainedHeads:
             out[f"{kind}_pruned_primitives"] = model.num_pruned
             out[f"{kind}_primitives"] = model.config.num_prims
             out[f"{kind}_opacity_logits_below_floor"] = share_below_floor(model)
+            out[f"{kind}_boxes_at_smallest_size"] = share_of_boxes_at_smallest(model)
         return out
 
 

@@ -62,7 +62,9 @@ class LossWeights:
     geo: float = Field(0.1, ge=0, description="Weight of the guide-mesh loss (MSE, cm^2); raise it if the "
                        "primitives drift off the tracked mesh.")
     vol: float = Field(0.01, ge=0, description="Weight of MVP's primitive volume prior; raise it if primitives "
-                       "grow into large, blurry slabs.")
+                       "grow into large, blurry slabs, lower it if the train stage's `<model>_boxes_at_smallest_size` "
+                       "is near 1 and renders leave the shoulders or the back of the head transparent (the tiny "
+                       "preset uses 0.001; docs/experiments.md, section 37).")
     kld: float = Field(0.001, ge=0, description="Weight of the encoder's KL divergence.")
     mat: float = Field(0.1, ge=0, description="Weight of the matte loss (L1, matte vs accumulated opacity); raise "
                        "it if the avatar leaks opacity outside the head.")
