@@ -29,7 +29,8 @@ baseline is the untagged file, or ``seeds_<subject>_<SEEDS_BASELINE>.json`` when
 records its training wall time (``seconds``, printed as a mean per seed), how many primitives
 ours pruned (``ours_pruned_primitives``), each model's clipped steps (``<model>_clipped_steps``,
 ``train.grad_clip_factor``), the share of its opacity logits on the softplus' flat tail
-(``<model>_opacity_logits_below_floor``) and the share of its validation error where it leaves the
+(``<model>_opacity_logits_below_floor``), the share of its boxes pressed to their smallest size
+(``<model>_boxes_at_smallest_size``) and the share of its validation error where it leaves the
 head transparent (``<model>_val_light_uncovered_error_share``, ``..._val_perf_...``): how a run
 that left holes shows. ``SEEDS_MODELS=ours`` trains ours alone (``train.baseline`` off; a
 tag is then required, so the untagged file the report reads always holds both models): a setting
