@@ -317,10 +317,14 @@ class RelightableMVP(nn.Module):
         scale = torch.exp(self.log_bar_intensity[bar_index.clamp(min=0)])
         return torch.where(known, scale, torch.ones_like(scale))
 
+    def volume_ratio(self, geometry: DecodedGeometry) -> torch.Tensor:
+        """Each box's volume over its base volume [B, P] (1 = the smallest a box can be)."""
+        base = (self.half_extent_m ** 3)[None]  # [1, P]
+        return geometry.half_extent.prod(-1) / base
+
     def volume_prior(self, geometry: DecodedGeometry) -> torch.Tensor:
         """MVP's volume loss: mean over the batch of the summed primitive volumes (in units of the base volume)."""
-        base = (self.half_extent_m ** 3)[None]  # [1, P]
-        return (geometry.half_extent.prod(-1) / base).sum(-1).mean() / self.half_extent_m.numel()
+        return self.volume_ratio(geometry).sum(-1).mean() / self.half_extent_m.numel()
 
 
 #: The opacity floor's logit: ``softplus``'s slope there is 3.4e-4 (at -18, where training
@@ -372,15 +376,19 @@ def opacity_floor_penalty(raw_alpha: torch.Tensor, floor: float = OPACITY_FLOOR_
     return F.relu(floor - raw_alpha).pow(2).mean()
 
 
+@torch.no_grad()
+def _prior_mean_geometry(model: RelightableMVP) -> DecodedGeometry:
+    """``model``'s decoded geometry at the latent prior's mean (z = 0), batch of one."""
+    return model.decode_geometry(torch.zeros(1, model.config.latent_dim, device=model.prim_keep.device))
+
+
 def share_below_floor(model: RelightableMVP, floor: float = OPACITY_FLOOR_LOGIT) -> float:
     """Share of ``model``'s opacity logits under ``floor`` at the latent prior's mean (z = 0).
 
     Logits there sit on the softplus' flat tail: a large share is how a run that left holes in
     the head can show, whether or not the floor penalty was on (docs/experiments.md, section 34).
     """
-    with torch.no_grad():
-        z = torch.zeros(1, model.config.latent_dim, device=model.prim_keep.device)
-        raw = model.decode_geometry(z).raw_alpha
+    raw = _prior_mean_geometry(model).raw_alpha
     return float((raw < floor).float().mean())
 
 
@@ -398,10 +406,7 @@ def share_of_boxes_at_smallest(model: RelightableMVP, tolerance: float = SMALLES
     stretch over the shoulders and the back of the head, and the run leaves them transparent
     (docs/experiments.md, section 37).
     """
-    with torch.no_grad():
-        z = torch.zeros(1, model.config.latent_dim, device=model.prim_keep.device)
-        half_extent = model.decode_geometry(z).half_extent[0]  # [P, 3]
-        ratio = (half_extent / model.half_extent_m[:, None]).prod(-1)  # [P] volume over base volume
+    ratio = model.volume_ratio(_prior_mean_geometry(model))[0]  # [P]
     return float((ratio[model.prim_keep] < 1.0 + tolerance).float().mean())
 
 

@@ -25,7 +25,7 @@ def test_a_fresh_head_has_room_to_shrink_and_a_pressed_one_none(tensors_and_rend
         with torch.no_grad():
             model.geometry_head.bias[6] = 0.0  # one axis half-way to 2x: every box grown again
         assert share_of_boxes_at_smallest(model) == 0.0
-        # Pruned boxes do not count: with one box left grown among pressed ones, the share is over the kept.
+        # After pruning half the boxes, the share is taken over the kept ones (all pressed again here).
         with torch.no_grad():
             model.geometry_head.bias[6] = -40.0
         keep = torch.ones(model.config.num_prims, dtype=torch.bool)
