@@ -28,7 +28,11 @@ class AvatarConfig(BaseModel):
     geometry_channels: int = Field(32, description="Hidden channels of the primitive position/rotation/scale delta branch.")
     steps_per_ray: int = Field(32, description="Raymarch samples per ray over its span through the union of primitive boxes.")
     prim_overlap: float = Field(1.6, description="Primitive edge length as a multiple of the spacing of neighbouring guide points.")
-    layout_theta_deg: float = Field(105.0, description="Half-width, in degrees around +z, of the UV layout over the head.")
+    layout_theta_deg: float = Field(105.0, description="Half-width, in degrees around +z, of the UV layout over the head. "
+                                    "Widen it if renders leave the shoulders or the back of the neck transparent: the "
+                                    "grid's side columns then reach them from the start (the tiny preset uses 120, which "
+                                    "raised ours' validation PSNR; docs/experiments.md, section 39). Wider spreads the "
+                                    "same N x N boxes thinner over the face.")
     layout_projection: Literal["latlong", "azimuthal"] = Field(
         "latlong",
         description="How the N x N grid maps onto the head (avatar.layout.grid_directions): 'latlong' (rows of "
