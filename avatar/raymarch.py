@@ -88,7 +88,7 @@ class RenderResult:
     prim_alpha: torch.Tensor | None = None
 
 
-def _to_local(prims: Primitives) -> tuple[torch.Tensor, torch.Tensor]:
+def local_frames(prims: Primitives) -> tuple[torch.Tensor, torch.Tensor]:
     """``local_from_head`` [B, P, 3, 3] and ``centre_local`` [B, P, 3]: y = x @ local_from_head - centre_local.
 
     ``y = R^T (x - c) / h`` with the division by the half extents folded into the matrix, so a
@@ -107,7 +107,7 @@ def box_intervals(prims: Primitives, rays_o: torch.Tensor, rays_d: torch.Tensor
     Returns ``hit`` [B, R, P] (bool), ``t_near`` [B, R, P] (clamped at 0) and ``t_far`` [B, R, P].
     """
     b, p = prims.centre.shape[:2]
-    local_from_head, centre_local = _to_local(prims)
+    local_from_head, centre_local = local_frames(prims)
     flat = local_from_head.detach().transpose(1, 2).reshape(b, 3, p * 3)  # [B, 3, P*3]
     # Every ray against every box as two batched matmuls [B, R, 3] x [B, 3, P*3].
     o_local = (rays_o @ flat).view(b, -1, p, 3) - centre_local.detach()[:, None]  # [B, R, P, 3]
@@ -255,7 +255,7 @@ def raymarch(prims: Primitives, rays_o: torch.Tensor, rays_d: torch.Tensor, step
         t_q = t[bi, ri, si]  # [Q]
     # The ray in each candidate's local frame, y(t) = o_local + t d_local (differentiable).
     flat_p = (torch.arange(b, device=cand.device)[:, None, None] * p + cand).reshape(-1)  # [B*R*K]
-    local_from_head, centre_local = _to_local(prims)  # differentiable in the geometry
+    local_from_head, centre_local = local_frames(prims)  # differentiable in the geometry
     mat = local_from_head.reshape(-1, 3, 3)[flat_p].view(b, r, k, 3, 3)
     o_local = (torch.einsum("bri,brkij->brkj", rays_o, mat)
                - centre_local.reshape(-1, 3)[flat_p].view(b, r, k, 3))  # [B, R, K, 3]
@@ -288,7 +288,7 @@ def _raymarch_fused(prims: Primitives, rays_o: torch.Tensor, rays_d: torch.Tenso
     b, r, _ = rays_o.shape
     p = prims.centre.shape[1]
     m = prims.voxels_per_side
-    local_from_head, centre_local = _to_local(prims)  # differentiable in the geometry
+    local_from_head, centre_local = local_frames(prims)  # differentiable in the geometry
     module = fused_module(required=True)
     with torch.no_grad():
         cand, near, far, t_min, t_max = module.candidates(

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 import torch
 
-from avatar.raymarch import (Primitives, RaymarchKernel, _sample_share, _to_local, box_intervals,
+from avatar.raymarch import (Primitives, RaymarchKernel, _sample_share, local_frames, box_intervals,
                              ray_samples, resolve_kernel, trilinear_corners)
 from avatar.raymarch_fused import fused_module
 
@@ -67,7 +67,7 @@ def _ray_candidates(prims: Primitives, rays_o: torch.Tensor, rays_d: torch.Tenso
     samples), else the tensor path's slab test (as ``kernel="torch"``).
     """
     if fused:
-        local_from_head, centre_local = _to_local(prims)
+        local_from_head, centre_local = local_frames(prims)
         cand, near, far, t_min, t_max = fused_module(required=True).candidates(
             rays_o.contiguous(), rays_d.contiguous(), local_from_head.contiguous(), centre_local.contiguous(),
             prims.centre.contiguous(), prims.half_extent.norm(dim=-1).contiguous())  # [R, K] x3, [R] x2
@@ -102,7 +102,7 @@ def colour_transport(prims: Primitives, rays_o: torch.Tensor, rays_d: torch.Tens
     p = prims.centre.shape[1]
     m3 = prims.voxels_per_side ** 3
     density = prims.density.reshape(-1)  # [P*M^3]
-    local_from_head, centre_local = _to_local(prims)  # [1, P, 3, 3], [1, P, 3]
+    local_from_head, centre_local = local_frames(prims)  # [1, P, 3, 3], [1, P, 3]
     chunk = max(1, min(r, max_pairs // max(1, p)))
     crow, ccol, cval, alphas = [], [], [], []
     for start in range(0, r, chunk):

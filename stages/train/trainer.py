@@ -37,6 +37,7 @@ from torch import nn
 
 from avatar.model import OPACITY_FLOOR_LOGIT, RelightableMVP, kl_divergence, opacity_floor_penalty
 from avatar.raymarch import RaymarchKernel, raymarch
+from avatar.reach import reach_penalty
 from avatar.render import BasisLights, PointLights, Rays, decode, decode_lights, render
 from avatar.travatar import LightBasis
 from pipeline.workspace import atomic_path
@@ -83,6 +84,14 @@ class LossWeights:
                        "towards less opacity, and every render, are unchanged. Off = the paper's softplus (on tiny it neither "
                        "narrowed the spread nor raised validation PSNR, not adopted); "
                        "docs/experiments.md, section 36 measures it.")
+    reach: float = Field(0.0, ge=0, description="Weight of the reach term (not the paper's): for each training ray "
+                         "the matte calls foreground (>= 0.5) that crosses no box, the distance, in the nearest box's "
+                         "half extents, by which that box misses it, summed and divided by the batch's rays "
+                         "(avatar.reach). Such a ray renders transparent and no other term has a gradient there; this "
+                         "one moves and grows the nearest box towards it. 0 = off (the paper's); at 0.1 a missed ray "
+                         "gets the pull the matte term gives a covered one. Turn it on if the train stage's "
+                         "`<model>_val_*_uncovered_fraction` is high and renders leave shoulders or the back of the "
+                         "head transparent; docs/experiments.md, section 39 measures it.")
 
 
 @pydantic_dataclass(frozen=True, config=ConfigDict(extra="forbid"))
@@ -513,7 +522,8 @@ class ModelTrainer:
         bar = t.bar[frames]
         rgb = self.r.rgb(geo, t.cam_pos[frames, cams], t.light_pos[frames], bar, model.bar_intensity(bar))
         record = self._recording()
-        res = raymarch(geo.primitives(rgb), ro, rd, model.config.steps_per_ray, prim_stats=record, kernel=self.r.kernel)
+        prims = geo.primitives(rgb)
+        res = raymarch(prims, ro, rd, model.config.steps_per_ray, prim_stats=record, kernel=self.r.kernel)
         if record:
             self.prim_alpha_max = torch.maximum(self.prim_alpha_max, res.prim_alpha.amax(0))
         pho = F.mse_loss(res.rgb, gt)
@@ -531,6 +541,11 @@ class ModelTrainer:
             floor = opacity_floor_penalty(geo.raw_alpha)
             total = total + w.floor * floor
             terms["floor"] = float(floor.detach())
+        if w.reach > 0:
+            reach, missed = reach_penalty(prims, ro, rd, matte >= 0.5)
+            total = total + w.reach * reach
+            terms["reach"] = float(reach.detach())
+            terms["missed"] = missed / max(int((matte >= 0.5).sum()), 1)
         psnr = float(-10.0 * torch.log10(pho.detach().clamp(min=1e-12)))
         return total, {"loss": float(total.detach()), "pho": float(pho.detach()), "geo": float(geo_loss.detach()),
                        "vol": float(vol.detach()),

@@ -8,7 +8,7 @@ import torch
 from scipy.spatial.transform import Rotation
 
 import avatar.raymarch_fused as fused
-from avatar.raymarch import Primitives, _to_local, raymarch, raymarch_reference
+from avatar.raymarch import Primitives, local_frames, raymarch, raymarch_reference
 
 
 def _scene(b: int = 2, p: int = 6, m: int = 4, r: int = 40, density: float = 3.0, seed: int = 0,
@@ -239,7 +239,7 @@ def test_fused_kernel_keeps_every_box_of_a_ray_that_crosses_more_than_its_first_
     origins = torch.tensor([[[0.0, 0.0, -3.0], [0.05, -0.05, -3.0], [3.0, 0.0, -3.0]]], dtype=dtype)
     dirs = torch.tensor([[[0.0, 0.0, 1.0], [0.0, 0.0, 1.0], [0.0, 0.0, 1.0]]], dtype=dtype)  # the last misses
     module = fused.fused_module(required=True)
-    local_from_head, centre_local = (x.contiguous() for x in _to_local(prims))
+    local_from_head, centre_local = (x.contiguous() for x in local_frames(prims))
     cand, *_ = module.candidates(origins, dirs, local_from_head, centre_local, centre, half.norm(dim=-1))
     assert cand.shape == (3, p) and bool((cand[:2] == torch.arange(p)).all()) and bool((cand[2] == -1).all())
     leaves = [prims.rgb.requires_grad_(), prims.density.requires_grad_()]
