@@ -206,7 +206,7 @@ def _trilinear_gather(table: torch.Tensor, base: torch.Tensor, local: torch.Tens
     One gather of all 8 corners (its backward is a single scatter-add).
     """
     rows, w = trilinear_corners(base, local, m)
-    values = table[rows.reshape(-1)].view(rows.shape[0], 8, -1)  # [Q, 8, C]
+    values = table[rows.reshape(-1)].view(rows.shape[0], 8, table.shape[-1])  # [Q, 8, C] (Q may be 0: no ray hits)
     return (values * w[..., None]).sum(1)  # [Q, C]
 
 

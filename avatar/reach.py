@@ -24,36 +24,58 @@ from avatar.raymarch import Primitives, box_intervals, local_frames
 
 
 def missed_rays(prims: Primitives, rays_o: torch.Tensor, rays_d: torch.Tensor, wanted: torch.Tensor) -> torch.Tensor:
-    """[B, R] bool: the ``wanted`` rays (e.g. foreground pixels) that cross no box."""
+    """[B, R] bool: the ``wanted`` rays (e.g. foreground pixels) that cross no box (every ray against every box)."""
     hit, _, _ = box_intervals(prims, rays_o, rays_d)
     return wanted & ~hit.any(-1)
 
 
-def reach_penalty(prims: Primitives, rays_o: torch.Tensor, rays_d: torch.Tensor, wanted: torch.Tensor
-                  ) -> tuple[torch.Tensor, int]:
+def _local_rays(prims: Primitives, rays_o: torch.Tensor, rays_d: torch.Tensor, item: torch.Tensor
+                ) -> tuple[torch.Tensor, torch.Tensor]:
+    """N rays [N, 3] of batch items ``item`` [N] in every box's local coordinates: origins and directions [N, P, 3]."""
+    local_from_head, centre_local = local_frames(prims)  # [B, P, 3, 3], [B, P, 3], with gradients
+    frames = local_from_head[item]  # [N, P, 3, 3]
+    o = torch.einsum("nc,npcj->npj", rays_o, frames) - centre_local[item]
+    d = torch.einsum("nc,npcj->npj", rays_d, frames)
+    return o, d
+
+
+def _crosses_any(o: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
+    """[N] bool: whether each local ray [N, P, 3] enters any box |y|_inf <= 1 ahead of its origin (the slab test)."""
+    with torch.no_grad():
+        safe = torch.where(d.abs() < 1e-12, torch.copysign(torch.full_like(d, 1e-12), d), d)
+        mid, reach = -o / safe, 1.0 / safe.abs()
+        t_near = (mid - reach).amax(-1).clamp(min=0.0)
+        t_far = (mid + reach).amin(-1)
+        return (t_far > t_near).any(-1)
+
+
+def reach_penalty(prims: Primitives, rays_o: torch.Tensor, rays_d: torch.Tensor, wanted: torch.Tensor,
+                  alpha: torch.Tensor) -> tuple[torch.Tensor, int]:
     """The reach term and how many ``wanted`` rays no box reaches.
 
     Args:
         prims: the boxes of B frames ([B, P] each), as raymarched (pruned boxes left out).
         rays_o, rays_d: [B, R, 3] ray origins and unit directions, head space.
         wanted: [B, R] bool, the rays that should reach a box (foreground under the matte).
+        alpha: [B, R] the rays' rendered opacity. A ray that crosses a box gathers some opacity
+            (the density is a softplus, positive), so only rays with none can have missed every
+            box: the every-ray-against-every-box test (as costly as half a training step's
+            raymarch) is left out, and the slab test runs on those few rays alone.
 
     Returns:
         The sum over the missed rays of the nearest box's gap (in its half extents), divided by
         all B x R rays: a mean over the batch, so its weight compares with the matte term's
         (an L1 mean over the same rays), and a scalar 0 with a graph when no ray is missed.
     """
-    missed = missed_rays(prims, rays_o, rays_d, wanted)
-    count = int(missed.sum())
-    if count == 0:
+    item, ray = (wanted & (alpha.detach() <= 0)).nonzero(as_tuple=True)  # [N] each
+    if item.numel():
+        o, d = _local_rays(prims, rays_o[item, ray], rays_d[item, ray], item)  # [N, P, 3] each
+        missed = ~_crosses_any(o, d)  # a density underflowed to 0 can leave a crossing ray without opacity
+        o, d = o[missed], d[missed]
+    if not item.numel() or not o.shape[0]:
         return prims.centre.sum() * 0.0, 0
-    item, ray = missed.nonzero(as_tuple=True)  # [N] each
-    local_from_head, centre_local = local_frames(prims)  # [B, P, 3, 3], [B, P, 3], with gradients
-    frames = local_from_head[item]  # [N, P, 3, 3]
-    o = torch.einsum("nc,npcj->npj", rays_o[item, ray], frames) - centre_local[item]  # [N, P, 3]
-    d = torch.einsum("nc,npcj->npj", rays_d[item, ray], frames)  # [N, P, 3]
     # The ray's point nearest the box centre (only ahead of the origin: the camera sees nothing behind it).
     t = (-(o * d).sum(-1) / (d * d).sum(-1).clamp(min=1e-12)).clamp(min=0.0)  # [N, P]
     gap = (o + t[..., None] * d).norm(dim=-1) - 1.0  # [N, P]
     nearest = gap.clamp(min=0.0).amin(-1)  # [N]
-    return nearest.sum() / wanted.numel(), count
+    return nearest.sum() / wanted.numel(), int(o.shape[0])

@@ -542,7 +542,7 @@ class ModelTrainer:
             total = total + w.floor * floor
             terms["floor"] = float(floor.detach())
         if w.reach > 0:
-            reach, missed = reach_penalty(prims, ro, rd, matte >= 0.5)
+            reach, missed = reach_penalty(prims, ro, rd, matte >= 0.5, res.alpha)
             total = total + w.reach * reach
             terms["reach"] = float(reach.detach())
             terms["missed"] = missed / max(int((matte >= 0.5).sum()), 1)

@@ -101,6 +101,17 @@ def test_constant_opaque_primitive_renders_its_colour(kernel):
         assert float(res.alpha[0, 2]) == 0.0 and float(res.rgb[0, 2].abs().sum()) == 0.0  # misses the box
 
 
+def test_a_batch_in_which_no_ray_hits_a_box_renders_empty_with_gradients(kernel):
+    # No (sample, box) pair at all: the lookups run on empty tensors (the trainer's reach term renders such rays).
+    prims, o, d = _scene(b=1, p=3, r=5)
+    o = o + torch.tensor([50.0, 0.0, 0.0], dtype=o.dtype)  # every ray passes far to the side of every box
+    prims.centre.requires_grad_()
+    res = raymarch(prims, o, d, steps=8, kernel=kernel)
+    assert float(res.alpha.abs().max()) == 0.0 and float(res.rgb.abs().max()) == 0.0
+    (res.rgb.sum() + res.alpha.sum()).backward()
+    assert prims.centre.grad is None or float(prims.centre.grad.abs().max()) == 0.0
+
+
 def test_colour_is_linear_for_fixed_opacity(kernel):
     """The basis of the voxel-space light sum: render(rgb1 + rgb2) = render(rgb1) + render(rgb2)."""
     prims, o, d = _scene(density=6.0)

@@ -27,6 +27,13 @@ def _rays(origins: list[list[float]], directions: list[list[float]]) -> tuple[to
     return o, d / d.norm(dim=-1, keepdim=True)
 
 
+def _penalty(prims: Primitives, o: torch.Tensor, d: torch.Tensor, wanted: torch.Tensor) -> tuple[torch.Tensor, int]:
+    """The reach term as the trainer takes it, with the rays' rendered opacity."""
+    with torch.no_grad():
+        alpha = raymarch(prims, o, d, steps=8, kernel="torch").alpha
+    return reach_penalty(prims, o, d, wanted, alpha)
+
+
 def test_the_gap_is_the_distance_in_the_nearest_boxs_half_extents():
     # Two boxes; a ray along +z at x = 3 passes 3 from the first box's centre (half extent 1: gap 2)
     # and 2 from the second's (half extent 0.5 across x: 4 half extents, gap 3). The nearest is the first.
@@ -34,7 +41,7 @@ def test_the_gap_is_the_distance_in_the_nearest_boxs_half_extents():
     o, d = _rays([[3.0, 0.0, -5.0], [0.0, 0.0, -5.0]], [[0.0, 0.0, 1.0], [0.0, 0.0, 1.0]])
     wanted = torch.tensor([[True, True]])
     assert missed_rays(prims, o, d, wanted).tolist() == [[True, False]]  # the second ray crosses the first box
-    penalty, missed = reach_penalty(prims, o, d, wanted)
+    penalty, missed = _penalty(prims, o, d, wanted)
     assert missed == 1
     assert float(penalty) == pytest.approx(2.0 / 2)  # summed over missed rays, divided by all 2 rays
 
@@ -43,7 +50,7 @@ def test_rays_that_hit_a_box_or_are_not_wanted_cost_nothing():
     prims = _boxes([[0.0, 0.0, 0.0]], [[1.0, 1.0, 1.0]])
     o, d = _rays([[0.5, 0.5, -5.0], [3.0, 0.0, -5.0]], [[0.0, 0.0, 1.0], [0.0, 0.0, 1.0]])
     prims.centre.requires_grad_()
-    penalty, missed = reach_penalty(prims, o, d, torch.tensor([[True, False]]))  # the missing ray is background
+    penalty, missed = _penalty(prims, o, d, torch.tensor([[True, False]]))  # the missing ray is background
     assert missed == 0 and float(penalty.detach()) == 0.0
     penalty.backward()  # still part of the graph, with no pull
     assert float(prims.centre.grad.abs().max()) == 0.0
@@ -53,7 +60,7 @@ def test_nothing_behind_the_camera_counts_as_near():
     # The ray's line passes through the box, but the box is behind the ray's origin: the gap is from the origin.
     prims = _boxes([[0.0, 0.0, 0.0]], [[1.0, 1.0, 1.0]])
     o, d = _rays([[0.0, 0.0, 4.0]], [[0.0, 0.0, 1.0]])
-    penalty, missed = reach_penalty(prims, o, d, torch.tensor([[True]]))
+    penalty, missed = _penalty(prims, o, d, torch.tensor([[True]]))
     assert missed == 1 and float(penalty) == pytest.approx(3.0)
 
 
@@ -63,7 +70,7 @@ def test_the_gradient_moves_grows_and_turns_the_nearest_box_towards_the_ray():
     o, d = _rays([[1.5, 0.2, -5.0]], [[0.0, 0.05, 1.0]])
     wanted = torch.tensor([[True]])
     leaves = [prims.centre.requires_grad_(), prims.half_extent.requires_grad_(), prims.rotation.requires_grad_()]
-    before, missed = reach_penalty(prims, o, d, wanted)
+    before, missed = _penalty(prims, o, d, wanted)
     assert missed == 1 and float(before) > 0
     before.backward()
     assert float(prims.centre.grad[0, 1].abs().max()) == 0.0  # the far box is left where it is
@@ -77,7 +84,7 @@ def test_the_gradient_moves_grows_and_turns_the_nearest_box_towards_the_ray():
             prims.half_extent.grad.zero_()
             prims.rotation.grad.zero_()
             with torch.enable_grad():
-                penalty, missed = reach_penalty(prims, o, d, wanted)
+                penalty, missed = _penalty(prims, o, d, wanted)
                 if missed == 0:
                     break
                 penalty.backward()
@@ -93,9 +100,34 @@ def test_a_missed_ray_costs_about_its_distance_on_a_realistic_grid():
     prims = _boxes([[x, y, 0.0] for y in xs for x in xs], [[0.01, 0.01, 0.01]] * 16)
     targets = [[0.005, 0.005], [0.06, 0.01], [0.01, -0.07], [0.01, 0.01]]
     o, d = _rays([[0.0, 0.0, -1.0]] * 4, [[x, y, 1.0] for x, y in targets])
-    penalty, missed = reach_penalty(prims, o, d, torch.ones(1, 4, dtype=torch.bool))
+    penalty, missed = _penalty(prims, o, d, torch.ones(1, 4, dtype=torch.bool))
     assert missed == 2
     # Ray 2 lands 0.03 past the last column's centre (boxes 2 cm wide): about 3 half extents, gap about 2;
     # ray 3 lands 0.04 under the bottom row's centre: gap about 3. Divided by 4 rays.
     assert float(penalty) == pytest.approx((2.0 + 3.0) / 4, rel=0.02)
     assert math.isfinite(float(penalty))
+
+
+def test_only_rays_without_opacity_are_tested_and_a_crossing_one_is_never_counted():
+    # Boxes with empty voxels: every ray renders with no opacity, so every wanted ray is a candidate, and
+    # the slab test must drop the ones that cross a box. The count matches the every-ray-against-every-box test.
+    g = torch.Generator().manual_seed(1)
+    centre = torch.randn(2, 9, 3, generator=g, dtype=torch.float64) * 0.3
+    rotation = torch.tensor(Rotation.random(18, random_state=1).as_matrix(), dtype=torch.float64).view(2, 9, 3, 3)
+    half = torch.rand(2, 9, 3, generator=g, dtype=torch.float64) * 0.2 + 0.1
+    empty = Primitives(centre, rotation, half, torch.rand(2, 9, 2, 2, 2, 3, dtype=torch.float64),
+                       torch.zeros(2, 9, 2, 2, 2, dtype=torch.float64))
+    o = torch.zeros(2, 300, 3, dtype=torch.float64)
+    o[..., 2] = -3.0
+    d = torch.randn(2, 300, 3, generator=g, dtype=torch.float64) * 0.2
+    d[..., 2] = 1.0
+    d = d / d.norm(dim=-1, keepdim=True)
+    wanted = torch.rand(2, 300, generator=g) < 0.7
+    exact = missed_rays(empty, o, d, wanted)
+    assert 0 < int(exact.sum()) < int(wanted.sum())  # some wanted rays cross a box, some do not
+    _, count = reach_penalty(empty, o, d, wanted, torch.zeros(2, 300, dtype=torch.float64))
+    assert count == int(exact.sum())
+    # With opacity where the boxes are, the same rays are found from the render alone.
+    solid = Primitives(centre, rotation, half, empty.rgb, torch.full_like(empty.density, 4.0))
+    _, rendered = _penalty(solid, o, d, wanted)
+    assert rendered == int(exact.sum())
