@@ -112,15 +112,23 @@ def box_intervals(prims: Primitives, rays_o: torch.Tensor, rays_d: torch.Tensor
     # Every ray against every box as two batched matmuls [B, R, 3] x [B, 3, P*3].
     o_local = (rays_o @ flat).view(b, -1, p, 3) - centre_local.detach()[:, None]  # [B, R, P, 3]
     d_local = (rays_d @ flat).view(b, -1, p, 3)  # [B, R, P, 3]
+    return slab_test(o_local, d_local)
+
+
+@torch.no_grad()
+def slab_test(o_local: torch.Tensor, d_local: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Rays already in a box's local coordinates [..., 3] against the box ``|y|_inf <= 1``.
+
+    Returns ``hit`` (bool), ``t_near`` (clamped at 0: nothing behind the origin) and ``t_far``, each [...].
+    """
     tiny = torch.full_like(d_local, 1e-12)
     inv_d = 1.0 / torch.where(d_local.abs() < 1e-12, torch.copysign(tiny, d_local), d_local)
     # The slabs |o + t d| <= 1 per axis: t in (-o/d) -+ 1/|d|.
     mid = -o_local * inv_d
     reach = inv_d.abs()
-    t_near = (mid - reach).amax(-1).clamp(min=0.0)  # [B, R, P]
-    t_far = (mid + reach).amin(-1)  # [B, R, P]
-    hit = t_far > t_near
-    return hit, t_near, t_far
+    t_near = (mid - reach).amax(-1).clamp(min=0.0)
+    t_far = (mid + reach).amin(-1)
+    return t_far > t_near, t_near, t_far
 
 
 @torch.no_grad()

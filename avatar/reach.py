@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import torch
 
-from avatar.raymarch import Primitives, box_intervals, local_frames
+from avatar.raymarch import Primitives, box_intervals, local_frames, slab_test
 
 
 def missed_rays(prims: Primitives, rays_o: torch.Tensor, rays_d: torch.Tensor, wanted: torch.Tensor) -> torch.Tensor:
@@ -37,16 +37,6 @@ def _local_rays(prims: Primitives, rays_o: torch.Tensor, rays_d: torch.Tensor, i
     o = torch.einsum("nc,npcj->npj", rays_o, frames) - centre_local[item]
     d = torch.einsum("nc,npcj->npj", rays_d, frames)
     return o, d
-
-
-def _crosses_any(o: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
-    """[N] bool: whether each local ray [N, P, 3] enters any box |y|_inf <= 1 ahead of its origin (the slab test)."""
-    with torch.no_grad():
-        safe = torch.where(d.abs() < 1e-12, torch.copysign(torch.full_like(d, 1e-12), d), d)
-        mid, reach = -o / safe, 1.0 / safe.abs()
-        t_near = (mid - reach).amax(-1).clamp(min=0.0)
-        t_far = (mid + reach).amin(-1)
-        return (t_far > t_near).any(-1)
 
 
 def reach_penalty(prims: Primitives, rays_o: torch.Tensor, rays_d: torch.Tensor, wanted: torch.Tensor,
@@ -68,11 +58,11 @@ def reach_penalty(prims: Primitives, rays_o: torch.Tensor, rays_d: torch.Tensor,
         (an L1 mean over the same rays), and a scalar 0 with a graph when no ray is missed.
     """
     item, ray = (wanted & (alpha.detach() <= 0)).nonzero(as_tuple=True)  # [N] each
-    if item.numel():
-        o, d = _local_rays(prims, rays_o[item, ray], rays_d[item, ray], item)  # [N, P, 3] each
-        missed = ~_crosses_any(o, d)  # a density underflowed to 0 can leave a crossing ray without opacity
-        o, d = o[missed], d[missed]
-    if not item.numel() or not o.shape[0]:
+    o, d = _local_rays(prims, rays_o[item, ray], rays_d[item, ray], item)  # [N, P, 3] each
+    # A density underflowed to 0 can leave a ray that crosses a box without opacity: the slab test drops it.
+    missed = ~slab_test(o, d)[0].any(-1)  # [N]
+    o, d = o[missed], d[missed]
+    if o.shape[0] == 0:
         return prims.centre.sum() * 0.0, 0
     # The ray's point nearest the box centre (only ahead of the origin: the camera sees nothing behind it).
     t = (-(o * d).sum(-1) / (d * d).sum(-1).clamp(min=1e-12)).clamp(min=0.0)  # [N, P]

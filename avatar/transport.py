@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 import torch
 
-from avatar.raymarch import (Primitives, RaymarchKernel, _sample_share, local_frames, box_intervals,
+from avatar.raymarch import (Primitives, RaymarchKernel, _sample_share, box_intervals, local_frames,
                              ray_samples, resolve_kernel, trilinear_corners)
 from avatar.raymarch_fused import fused_module
 

@@ -544,10 +544,11 @@ class ModelTrainer:
             total = total + w.floor * floor
             terms["floor"] = float(floor.detach())
         if w.reach > 0:
-            reach, missed = reach_penalty(prims, ro, rd, matte >= 0.5, res.alpha)
+            foreground = matte >= 0.5
+            reach, missed = reach_penalty(prims, ro, rd, foreground, res.alpha)
             total = total + w.reach * reach
             terms["reach"] = float(reach.detach())
-            terms["missed"] = missed / max(int((matte >= 0.5).sum()), 1)
+            terms["missed"] = missed / max(int(foreground.sum()), 1)
         psnr = float(-10.0 * torch.log10(pho.detach().clamp(min=1e-12)))
         return total, {"loss": float(total.detach()), "pho": float(pho.detach()), "geo": float(geo_loss.detach()),
                        "vol": float(vol.detach()),
