@@ -94,6 +94,13 @@ class LossWeights:
                          "head transparent. On tiny (4 seeds) it closed bob's worst seed's gap and narrowed bob's "
                          "spread, and lowered alice's validation-light PSNR by 0.2 dB: not adopted; "
                          "docs/experiments.md, section 39.")
+    reach_until: float = Field(1.0, gt=0, le=1, description="Fraction of the run during which the reach term is "
+                               "on (1 = the whole run; 0.5 = until the tiny and paper presets prune empty boxes). "
+                               "The term is for the foreground the grid of boxes leaves uncovered as the boxes settle; "
+                               "late in the run the boxes are fitted, and pulling one towards a stray foreground ray "
+                               "(a matte's false positive, say) moves a box that is already doing its job. Lower it if "
+                               "the reach term closes holes but costs PSNR where there were none; "
+                               "docs/experiments.md, section 40 measures it.")
 
 
 @pydantic_dataclass(frozen=True, config=ConfigDict(extra="forbid"))
@@ -543,7 +550,7 @@ class ModelTrainer:
             floor = opacity_floor_penalty(geo.raw_alpha)
             total = total + w.floor * floor
             terms["floor"] = float(floor.detach())
-        if w.reach > 0:
+        if w.reach > 0 and self.state.iteration < w.reach_until * self.iterations:
             foreground = matte >= 0.5
             reach, missed = reach_penalty(prims, ro, rd, foreground, res.alpha)
             total = total + w.reach * reach

@@ -42,3 +42,34 @@ def test_the_reach_term_closes_the_gaps_the_other_terms_cannot(tensors_and_rende
     assert last_plain > 0.2, last_plain
     assert last < 0.5 * last_plain, (last, last_plain)
     assert all(t["reach"] >= 0 for t in on) and on[-1]["reach"] < on[0]["reach"] + 0.05
+
+
+def test_the_reach_term_stops_at_its_fraction_of_the_run(tensors_and_renderer, tmp_path):
+    """``reach_until``: the term is in the loss for that fraction of the iterations and out of it after."""
+    tensors, renderer = tensors_and_renderer
+    model = renderer.model
+    state = {k: v.clone() for k, v in model.state_dict().items()}
+    try:
+        with torch.no_grad():
+            model.half_extent_m.mul_(0.4)  # gaps, so the term has rays to pull towards
+        tr = trainer_mod.ModelTrainer(renderer, tensors, np.arange(4), iterations=8, batch_size=2, rays_per_image=64,
+                                      lr=1e-2, weights=trainer_mod.LossWeights(reach=1.0, reach_until=0.5), seed=0,
+                                      ckpt_path=tmp_path / "until.pt", checkpoint_every=1000, spike_factor=1e9,
+                                      log=logging.getLogger("test"))
+        terms = []
+        for _ in range(8):  # as ModelTrainer.run steps: the iteration counts the steps taken
+            terms.append(tr.step())
+            tr.state.iteration += 1
+    finally:
+        model.load_state_dict(state)
+    assert all("reach" in t for t in terms[:4]) and terms[0]["reach"] > 0
+    assert not any("reach" in t or "missed" in t for t in terms[4:])
+
+
+def test_reach_until_must_be_a_fraction_of_the_run():
+    import pydantic
+    import pytest
+
+    for bad in (0.0, 1.5):
+        with pytest.raises(pydantic.ValidationError, match="reach_until"):
+            trainer_mod.LossWeights(reach=0.1, reach_until=bad)
