@@ -91,16 +91,16 @@ class LossWeights:
                          "one moves and grows the nearest box towards it. 0 = off (the paper's); at 0.1 a missed ray "
                          "gets the pull the matte term gives a covered one. Turn it on if the train stage's "
                          "`<model>_val_*_uncovered_fraction` is high and renders leave shoulders or the back of the "
-                         "head transparent. On tiny (4 seeds) it closed bob's worst seed's gap and narrowed bob's "
-                         "spread, and lowered alice's validation-light PSNR by 0.2 dB: not adopted; "
-                         "docs/experiments.md, section 39.")
+                         "head transparent. The tiny preset uses 0.1 for the first half of the run (reach_until 0.5): "
+                         "it narrowed ours' spread over seeds on alice's and bob's validation splits with the means "
+                         "unchanged (docs/experiments.md, sections 39 and 40).")
     reach_until: float = Field(1.0, gt=0, le=1, description="Fraction of the run during which the reach term is "
                                "on (1 = the whole run; 0.5 = until the tiny and paper presets prune empty boxes). "
                                "The term is for the foreground the grid of boxes leaves uncovered as the boxes settle; "
                                "late in the run the boxes are fitted, and pulling one towards a stray foreground ray "
                                "(a matte's false positive, say) moves a box that is already doing its job. Lower it if "
                                "the reach term closes holes but costs PSNR where there were none; "
-                               "docs/experiments.md, section 40 measures it.")
+                               "docs/experiments.md, section 40 measures it; tiny uses 0.5.")
 
 
 @pydantic_dataclass(frozen=True, config=ConfigDict(extra="forbid"))
