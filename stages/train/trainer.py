@@ -95,7 +95,8 @@ class LossWeights:
                          "it narrowed ours' spread over seeds on alice's and bob's validation splits with the means "
                          "unchanged (docs/experiments.md, sections 39 and 40).")
     reach_until: float = Field(1.0, gt=0, le=1, description="Fraction of the run during which the reach term is "
-                               "on (1 = the whole run; 0.5 = until the tiny and paper presets prune empty boxes). "
+                               "on (1 = the whole run; 0.5 = until empty boxes are pruned at train.pruning.at_fraction's "
+                               "default). "
                                "The term is for the foreground the grid of boxes leaves uncovered as the boxes settle; "
                                "late in the run the boxes are fitted, and pulling one towards a stray foreground ray "
                                "(a matte's false positive, say) moves a box that is already doing its job. Lower it if "

@@ -10,18 +10,23 @@ import torch
 from stages.train import trainer as trainer_mod
 
 
-def _train(tensors, renderer, tmp_path, reach: float, steps: int = 60) -> list[dict]:
-    """Every step's loss terms, the boxes at 0.4 x their base size."""
+def _train(tensors, renderer, tmp_path, weights: trainer_mod.LossWeights, steps: int = 60) -> list[dict]:
+    """Every step's loss terms, the boxes at 0.4 x their base size (a grid with gaps: many foreground rays
+    cross no box); the iteration advances with each step, as ``ModelTrainer.run`` steps."""
     model = renderer.model
     state = {k: v.clone() for k, v in model.state_dict().items()}
     try:
         with torch.no_grad():
-            model.half_extent_m.mul_(0.4)  # a grid with gaps: many foreground rays cross no box
+            model.half_extent_m.mul_(0.4)
         tr = trainer_mod.ModelTrainer(renderer, tensors, np.arange(4), iterations=steps, batch_size=2, rays_per_image=64,
-                                      lr=1e-2, weights=trainer_mod.LossWeights(reach=reach), seed=0,
-                                      ckpt_path=tmp_path / f"r{reach}.pt", checkpoint_every=1000, spike_factor=1e9,
-                                      log=logging.getLogger("test"))
-        return [tr.step() for _ in range(steps)]
+                                      lr=1e-2, weights=weights, seed=0,
+                                      ckpt_path=tmp_path / f"r{weights.reach}_{weights.reach_until}.pt",
+                                      checkpoint_every=1000, spike_factor=1e9, log=logging.getLogger("test"))
+        terms = []
+        for _ in range(steps):
+            terms.append(tr.step())
+            tr.state.iteration += 1
+        return terms
     finally:
         model.load_state_dict(state)
 
@@ -33,10 +38,11 @@ def _last_missed(terms: list[dict]) -> float:
 
 def test_the_reach_term_closes_the_gaps_the_other_terms_cannot(tensors_and_renderer, tmp_path):
     tensors, renderer = tensors_and_renderer
-    off = _train(tensors, renderer, tmp_path, 0.0, steps=2)
+    off = _train(tensors, renderer, tmp_path, trainer_mod.LossWeights(reach=0.0), steps=2)
     assert all("reach" not in t and "missed" not in t for t in off)  # off = the paper's loss, nothing reported
     # A weight too small to move anything measures the gaps the paper's terms leave: they stay open.
-    plain, on = _train(tensors, renderer, tmp_path, 1e-9), _train(tensors, renderer, tmp_path, 1.0)
+    plain = _train(tensors, renderer, tmp_path, trainer_mod.LossWeights(reach=1e-9))
+    on = _train(tensors, renderer, tmp_path, trainer_mod.LossWeights(reach=1.0))
     last_plain, last = _last_missed(plain), _last_missed(on)
     assert plain[0]["missed"] > 0.1 and on[0]["missed"] == plain[0]["missed"]  # same draw, same start
     assert last_plain > 0.2, last_plain
@@ -47,21 +53,7 @@ def test_the_reach_term_closes_the_gaps_the_other_terms_cannot(tensors_and_rende
 def test_the_reach_term_stops_at_its_fraction_of_the_run(tensors_and_renderer, tmp_path):
     """``reach_until``: the term is in the loss for that fraction of the iterations and out of it after."""
     tensors, renderer = tensors_and_renderer
-    model = renderer.model
-    state = {k: v.clone() for k, v in model.state_dict().items()}
-    try:
-        with torch.no_grad():
-            model.half_extent_m.mul_(0.4)  # gaps, so the term has rays to pull towards
-        tr = trainer_mod.ModelTrainer(renderer, tensors, np.arange(4), iterations=8, batch_size=2, rays_per_image=64,
-                                      lr=1e-2, weights=trainer_mod.LossWeights(reach=1.0, reach_until=0.5), seed=0,
-                                      ckpt_path=tmp_path / "until.pt", checkpoint_every=1000, spike_factor=1e9,
-                                      log=logging.getLogger("test"))
-        terms = []
-        for _ in range(8):  # as ModelTrainer.run steps: the iteration counts the steps taken
-            terms.append(tr.step())
-            tr.state.iteration += 1
-    finally:
-        model.load_state_dict(state)
+    terms = _train(tensors, renderer, tmp_path, trainer_mod.LossWeights(reach=1.0, reach_until=0.5), steps=8)
     assert all("reach" in t for t in terms[:4]) and terms[0]["reach"] > 0
     assert not any("reach" in t or "missed" in t for t in terms[4:])
 
