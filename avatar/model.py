@@ -410,6 +410,26 @@ def share_of_boxes_at_smallest(model: RelightableMVP, tolerance: float = SMALLES
     return float((ratio[model.prim_keep] < 1.0 + tolerance).float().mean())
 
 
+def latent_noise_to_code_spread(model: RelightableMVP, mesh_vertices: torch.Tensor) -> float:
+    """How much of the code the decoder trains on is the encoder's noise, over the frames of ``mesh_vertices``.
+
+    The trainer decodes ``z = mu + sigma * eps``: the mean noise ``sigma`` (over frames and the
+    code's dimensions) over the mean spread of the codes ``mu`` (their standard deviation over the
+    frames, per dimension). Over 1, a training code is more the seed's noise draw than the
+    expression it encodes; the KL weight (``train.loss_weights.kld``) sets it. NaN with fewer
+    than 2 frames.
+
+    Args:
+        mesh_vertices: [F, V, 3] tracked (or guide) meshes in head space, metres, as the trainer encodes them.
+    """
+    if mesh_vertices.shape[0] < 2:
+        return float("nan")
+    with torch.no_grad():
+        mu, logvar = model.encode(mesh_vertices)
+    spread = mu.std(0).mean()
+    return float(torch.exp(0.5 * logvar).mean() / spread.clamp(min=1e-12))
+
+
 def kl_divergence(mu: torch.Tensor, logvar: torch.Tensor) -> torch.Tensor:
     """KL(q(z|x) || N(0, I)), averaged over the batch and latent dimensions."""
     return 0.5 * (mu.pow(2) + logvar.exp() - 1.0 - logvar).mean()
@@ -422,4 +442,5 @@ def count_parameters(model: nn.Module) -> int:
 
 __all__ = ["RelightableMVP", "DecodedGeometry", "MeshEncoder", "kl_divergence", "count_parameters",
            "opacity_floor_penalty", "share_below_floor", "share_of_boxes_at_smallest", "lifted_softplus",
+           "latent_noise_to_code_spread",
            "OPACITY_FLOOR_LOGIT", "SMALLEST_BOX_TOLERANCE"]

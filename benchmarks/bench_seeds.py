@@ -30,7 +30,8 @@ records its training wall time (``seconds``, printed as a mean per seed), how ma
 ours pruned (``ours_pruned_primitives``), each model's clipped steps (``<model>_clipped_steps``,
 ``train.grad_clip_factor``), the share of its opacity logits on the softplus' flat tail
 (``<model>_opacity_logits_below_floor``), the share of its boxes pressed to their smallest size
-(``<model>_boxes_at_smallest_size``) and the share of its validation error where it leaves the
+(``<model>_boxes_at_smallest_size``), its encoder's noise over its codes' spread
+(``<model>_latent_noise_to_code_spread``, set by the KL weight) and the share of its validation error where it leaves the
 head transparent (``<model>_val_light_uncovered_error_share``, ``..._val_perf_...``): how a run
 that left holes shows. ``SEEDS_MODELS=ours`` trains ours alone (``train.baseline`` off; a
 tag is then required, so the untagged file the report reads always holds both models): a setting
@@ -213,6 +214,7 @@ def main() -> dict:
             # the validation error where the capture's head is rendered transparent.
             for key in [f"{k}_opacity_logits_below_floor" for k in models] + [
                     f"{k}_boxes_at_smallest_size" for k in models] + [
+                    f"{k}_latent_noise_to_code_spread" for k in models] + [
                     f"{k}_{s}_uncovered_error_share" for k in models for s in ("val_light", "val_perf")]:
                 if key in m:
                     runs[seed][key] = m[key]

@@ -15,7 +15,8 @@ from typing import Any
 
 import torch
 
-from avatar.model import RelightableMVP, count_parameters, share_below_floor, share_of_boxes_at_smallest
+from avatar.model import (RelightableMVP, count_parameters, latent_noise_to_code_spread, share_below_floor,
+                          share_of_boxes_at_smallest)
 from avatar.raymarch import RaymarchKernel
 from pipeline.stage import Progress
 from stages.train.assess_images import AssessImages
@@ -37,6 +38,8 @@ class TrainedHeads:
         parameters: each kind's parameter count.
         training_seconds: wall-clock time of the training; the kinds' own ``train_seconds``
             overlap when they train side by side.
+        latent_noise_to_code_spread: each kind's encoder noise over its codes' spread on the fitted
+            frames at the end of training (``avatar.model.latent_noise_to_code_spread``).
     """
 
     kinds: list[str]
@@ -44,9 +47,10 @@ class TrainedHeads:
     states: dict[str, TrainState]
     parameters: dict[str, int]
     training_seconds: float
+    latent_noise_to_code_spread: dict[str, float]
 
     def metrics(self) -> dict[str, float]:
-        """Each kind's parameters, iterations, training time, rollbacks and primitives."""
+        """Each kind's parameters, iterations, training time, rollbacks, primitives and latent noise."""
         out: dict[str, float] = {f"{kind}_parameters": self.parameters[kind] for kind in self.kinds}
         for kind in self.kinds:
             model, state = self.renderers[kind].model, self.states[kind]
@@ -58,6 +62,7 @@ class TrainedHeads:
             out[f"{kind}_primitives"] = model.config.num_prims
             out[f"{kind}_opacity_logits_below_floor"] = share_below_floor(model)
             out[f"{kind}_boxes_at_smallest_size"] = share_of_boxes_at_smallest(model)
+            out[f"{kind}_latent_noise_to_code_spread"] = self.latent_noise_to_code_spread[kind]
         return out
 
 
@@ -106,8 +111,11 @@ def fit_heads(setup: TrainingSetup, num_bars: int, params: TrainParams, device: 
     training_seconds = time.perf_counter() - started
     for renderer in renderers.values():
         renderer.model.eval()
+    fitted_meshes = tensors.guide_vertices[torch.as_tensor(setup.fitted_frames, device=tensors.guide_vertices.device)]
     return TrainedHeads(kinds=kinds, renderers=renderers, states=states, parameters=parameters,
-                        training_seconds=training_seconds)
+                        training_seconds=training_seconds,
+                        latent_noise_to_code_spread={kind: latent_noise_to_code_spread(renderers[kind].model, fitted_meshes)
+                                                     for kind in kinds})
 
 
 def _curve_psnr(renderer: Renderer, images: AssessImages, pairs: list[tuple[int, int]]) -> Callable[[], float]:

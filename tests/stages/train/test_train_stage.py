@@ -70,6 +70,8 @@ def test_stage_outputs_metrics_table_and_models(capture, tmp_path):
             assert 0.0 <= metrics[f"{model}_{split}_uncovered_fraction"] <= 1.0
             assert 0.0 <= metrics[f"{model}_{split}_uncovered_error_share"] <= 1.0
     assert f"ours novel light {100 * metrics['ours_novel_light_uncovered_fraction']:.1f}%" in table
+    for model in ("ours", "travatar"):  # the encoder's noise over its codes' spread, on the fitted frames
+        assert 0.0 < metrics[f"{model}_latent_noise_to_code_spread"] < np.inf
     assert (out / "learning_curve.png").stat().st_size > 0
     curve = json.loads((out / "curve.json").read_text())
     assert [p[0] for p in curve["ours"]] == [0, 6] and [p[0] for p in curve["travatar"]] == [0, 6]
