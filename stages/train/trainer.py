@@ -66,7 +66,12 @@ class LossWeights:
                        "grow into large, blurry slabs, lower it if the train stage's `<model>_boxes_at_smallest_size` "
                        "is near 1 and renders leave the shoulders or the back of the head transparent (the tiny "
                        "preset uses 0.001; docs/experiments.md, section 37).")
-    kld: float = Field(0.001, ge=0, description="Weight of the encoder's KL divergence.")
+    kld: float = Field(0.001, ge=0, description="Weight of the encoder's KL divergence (averaged over the code's "
+                       "dimensions). It sets how much of the code the decoder trains on is noise (the train stage's "
+                       "`<model>_latent_noise_to_code_spread`), and that noise keeps the decoder from overfitting the "
+                       "training expressions: with far less of it the tiny preset fit the training images better and new "
+                       "expressions worse (docs/experiments.md, section 41). Change it only with the "
+                       "validation-performance split to judge by.")
     mat: float = Field(0.1, ge=0, description="Weight of the matte loss (L1, matte vs accumulated opacity); raise "
                        "it if the avatar leaks opacity outside the head.")
     mat_delta: float = Field(0.0, ge=0, lt=1, description="Opacity error under which the matte loss turns "
