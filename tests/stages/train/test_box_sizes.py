@@ -2,14 +2,12 @@
 
 from __future__ import annotations
 
-import logging
-
-import numpy as np
 import pytest
 import torch
 
 from avatar.model import share_of_boxes_at_smallest
 from stages.train import trainer as trainer_mod
+from tests.stages.train.train_synth import train_steps, weights_restored
 
 
 def test_a_fresh_head_has_room_to_shrink_and_a_pressed_one_none(tensors_and_renderer):
@@ -35,18 +33,12 @@ def test_a_fresh_head_has_room_to_shrink_and_a_pressed_one_none(tensors_and_rend
     finally:
         model.load_state_dict(state)
 
-
 @pytest.mark.parametrize("vol", [0.0, 10.0])
 def test_the_volume_prior_presses_boxes_to_their_smallest_size(tensors_and_renderer, tmp_path, vol):
     tensors, renderer = tensors_and_renderer
-    state = {k: v.clone() for k, v in renderer.model.state_dict().items()}
-    try:
-        tr = trainer_mod.ModelTrainer(renderer, tensors, np.arange(4), iterations=60, batch_size=2,
-                                      rays_per_image=16, lr=5e-2, weights=trainer_mod.LossWeights(vol=vol),
-                                      seed=0, ckpt_path=tmp_path / f"v{vol}.pt", checkpoint_every=100,
-                                      spike_factor=1e9, log=logging.getLogger("test"))
-        for _ in range(60):
-            tr.step()
+    with weights_restored(renderer.model):
+        tr, _ = train_steps(renderer, tensors, tmp_path / f"v{vol}.pt", trainer_mod.LossWeights(vol=vol), steps=60,
+                            lr=5e-2)
         share = share_of_boxes_at_smallest(tr.model)
         if vol:
             # A heavy prior drives the boxes' scale sigmoids onto their flat tail: within 60 steps a third or more
@@ -54,5 +46,3 @@ def test_the_volume_prior_presses_boxes_to_their_smallest_size(tensors_and_rende
             assert share > 0.3, share
         else:
             assert share < 0.1, share  # without it nothing asks the boxes to shrink that far
-    finally:
-        renderer.model.load_state_dict(state)

@@ -2,22 +2,20 @@
 
 from __future__ import annotations
 
-import logging
 import math
 
-import numpy as np
 import torch
 
 from avatar.model import latent_noise_to_code_spread
 from stages.train import trainer as trainer_mod
+from tests.stages.train.train_synth import train_steps, weights_restored
 
 
 def test_the_ratio_is_the_mean_noise_over_the_mean_spread_of_the_codes(tensors_and_renderer):
     tensors, renderer = tensors_and_renderer
     model = renderer.model
-    state = {k: v.clone() for k, v in model.state_dict().items()}
     meshes = tensors.guide_vertices
-    try:
+    with weights_restored(model):
         with torch.no_grad():
             mu, _ = model.encode(meshes)
         # A fresh encoder's log-variance is -4 for every frame: sigma = exp(-2).
@@ -29,22 +27,13 @@ def test_the_ratio_is_the_mean_noise_over_the_mean_spread_of_the_codes(tensors_a
         # One expression repeated: codes that do not spread at all; fewer than 2 frames: no spread to take.
         assert latent_noise_to_code_spread(model, meshes[:1].expand(4, -1, -1)) > 1e6
         assert math.isnan(latent_noise_to_code_spread(model, meshes[:1]))
-    finally:
-        model.load_state_dict(state)
 
 
 def _trained_ratio(tensors, renderer, tmp_path, kld: float) -> float:
-    state = {k: v.clone() for k, v in renderer.model.state_dict().items()}
-    try:
-        tr = trainer_mod.ModelTrainer(renderer, tensors, np.arange(6), iterations=60, batch_size=2,
-                                      rays_per_image=16, lr=3e-3, weights=trainer_mod.LossWeights(kld=kld),
-                                      seed=0, ckpt_path=tmp_path / f"k{kld}.pt", checkpoint_every=100,
-                                      spike_factor=1e9, log=logging.getLogger("test"))
-        for _ in range(60):
-            tr.step()
+    with weights_restored(renderer.model):
+        tr, _ = train_steps(renderer, tensors, tmp_path / f"k{kld}.pt", trainer_mod.LossWeights(kld=kld), steps=60,
+                            lr=3e-3, frames=6)
         return latent_noise_to_code_spread(tr.model, tensors.guide_vertices[:6])
-    finally:
-        renderer.model.load_state_dict(state)
 
 
 def test_a_heavier_kl_weight_trains_a_noisier_code(tensors_and_renderer, tmp_path):

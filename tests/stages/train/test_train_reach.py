@@ -2,33 +2,23 @@
 
 from __future__ import annotations
 
-import logging
 
 import numpy as np
 import torch
 
 from stages.train import trainer as trainer_mod
+from tests.stages.train.train_synth import train_steps, weights_restored
 
 
 def _train(tensors, renderer, tmp_path, weights: trainer_mod.LossWeights, steps: int = 60) -> list[dict]:
     """Every step's loss terms, the boxes at 0.4 x their base size (a grid with gaps: many foreground rays
     cross no box); the iteration advances with each step, as ``ModelTrainer.run`` steps."""
-    model = renderer.model
-    state = {k: v.clone() for k, v in model.state_dict().items()}
-    try:
+    with weights_restored(renderer.model) as model:
         with torch.no_grad():
             model.half_extent_m.mul_(0.4)
-        tr = trainer_mod.ModelTrainer(renderer, tensors, np.arange(4), iterations=steps, batch_size=2, rays_per_image=64,
-                                      lr=1e-2, weights=weights, seed=0,
-                                      ckpt_path=tmp_path / f"r{weights.reach}_{weights.reach_until}.pt",
-                                      checkpoint_every=1000, spike_factor=1e9, log=logging.getLogger("test"))
-        terms = []
-        for _ in range(steps):
-            terms.append(tr.step())
-            tr.state.iteration += 1
+        _, terms = train_steps(renderer, tensors, tmp_path / f"r{weights.reach}_{weights.reach_until}.pt", weights,
+                               steps=steps, lr=1e-2, rays_per_image=64)
         return terms
-    finally:
-        model.load_state_dict(state)
 
 
 def _last_missed(terms: list[dict]) -> float:

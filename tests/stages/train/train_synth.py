@@ -9,6 +9,7 @@ produce: ``capture/manifest.json`` + ``frames``, ``stabilize/cameras_head.json``
 
 from __future__ import annotations
 
+import contextlib
 import json
 from pathlib import Path
 
@@ -154,3 +155,31 @@ def small_model(data, seed: int = 0):
     model = RelightableMVP(config, layout, data.num_bars)
     renderer = trainer_mod.Renderer(model, "ours", None, sorted(set(data.bar.tolist())))
     return config, tensors, model, renderer
+
+
+@contextlib.contextmanager
+def weights_restored(model):
+    """Gives ``model`` (a shared fixture's) its present weights back on exit, whatever a test trained into it."""
+    state = {k: v.clone() for k, v in model.state_dict().items()}
+    try:
+        yield model
+    finally:
+        model.load_state_dict(state)
+
+
+def train_steps(renderer, tensors, ckpt_path: Path, weights, *, steps: int, lr: float, frames: int = 4,
+                rays_per_image: int = 16):
+    """A ``ModelTrainer`` on ``renderer``'s model, stepped ``steps`` times with the iteration advancing as
+    ``ModelTrainer.run`` advances it; returns the trainer and every step's loss terms."""
+    import logging
+
+    from stages.train import trainer as trainer_mod
+
+    tr = trainer_mod.ModelTrainer(renderer, tensors, np.arange(frames), iterations=steps, batch_size=2,
+                                  rays_per_image=rays_per_image, lr=lr, weights=weights, seed=0, ckpt_path=ckpt_path,
+                                  checkpoint_every=1000, spike_factor=1e9, log=logging.getLogger("test"))
+    terms = []
+    for _ in range(steps):
+        terms.append(tr.step())
+        tr.state.iteration += 1
+    return tr, terms
