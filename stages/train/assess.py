@@ -26,7 +26,7 @@ from stages.train.evaluate import (
 from stages.train.fit import TrainedHeads
 from stages.train.params import TrainParams
 from stages.train.setup import TrainingSetup
-from stages.train.splits import HELD_OUT_SPLITS, Splits, nearest_training_distance_mm
+from stages.train.splits import HELD_OUT_SPLITS, Splits, expression_reach_sd, nearest_training_distance_mm
 from stages.train.trainer import Renderer
 
 
@@ -98,7 +98,8 @@ def run_metrics(heads: TrainedHeads, setup: TrainingSetup, data: TrainData, para
         "iterations_per_second": ours.iteration / max(ours.train_seconds, 1e-9),
         "train_frames": len(setup.train_frames), "fitted_frames": len(setup.fitted_frames),
         "image_scale": setup.image_scale}
-    metrics.update(expression_spread_metrics(data.vertices[:, setup.layout.guide_vertex_ids], setup.splits))
+    metrics.update(expression_spread_metrics(data.vertices[:, setup.layout.guide_vertex_ids], setup.splits,
+                                             params.capacity_rule.expression_variance))
     metrics["image_width_px"] = int(setup.tensors.width)
     metrics["assess_width_px"] = int(setup.assess.width)
     metrics["images_memory_mapped"] = int(data.spilled)
@@ -110,19 +111,31 @@ def run_metrics(heads: TrainedHeads, setup: TrainingSetup, data: TrainData, para
     return metrics
 
 
-def expression_spread_metrics(guide_vertices: np.ndarray, splits: Splits) -> dict[str, float]:
-    """How far each split's guide meshes are from the nearest training frame's (RMS vertex distance, mean over frames, mm).
+def expression_spread_metrics(guide_vertices: np.ndarray, splits: Splits, variance: float = 0.999) -> dict[str, float]:
+    """How far each split's guide meshes lie from the training frames' expressions.
 
     ``train_expression_spacing_mm`` is the training frames' distance to their nearest other
-    training frame; ``{split}_expression_distance_mm`` over it is how far the split
-    extrapolates in expression (1 = as close as training frames are to each other).
+    training frame; ``{split}_expression_distance_mm`` (RMS vertex distance to the nearest
+    training mesh, mean over frames, mm) over it is how far the split lies from the training
+    expressions (1 = as close as training frames are to each other).
+    ``{split}_expression_reach_sd`` (median over frames of ``expression_reach_sd``, the modes
+    holding ``variance``) against ``train_expression_reach_sd`` (the largest over training
+    frames: the edge of their range) says whether it lies beyond them: above it, the split
+    asks the networks to extrapolate.
     """
-    out = {"train_expression_spacing_mm": float(np.mean(nearest_training_distance_mm(
-        guide_vertices, splits.train, splits.train)))} if splits.train.sum() > 1 else {}
+    out = {}
+    if splits.train.sum() > 1:
+        out["train_expression_spacing_mm"] = float(np.mean(nearest_training_distance_mm(
+            guide_vertices, splits.train, splits.train)))
+        out["train_expression_reach_sd"] = float(np.max(expression_reach_sd(
+            guide_vertices, splits.train, splits.train, variance)))
     for split in HELD_OUT_SPLITS:
         if splits.mask(split).any():
             out[f"{split}_expression_distance_mm"] = float(np.mean(nearest_training_distance_mm(
                 guide_vertices, splits.train, splits.mask(split))))
+            if splits.train.sum() > 1:
+                out[f"{split}_expression_reach_sd"] = float(np.median(expression_reach_sd(
+                    guide_vertices, splits.train, splits.mask(split), variance)))
     return out
 
 

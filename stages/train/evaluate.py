@@ -121,6 +121,13 @@ def results_table(metrics: dict[str, float], models: list[str]) -> str:
         parts = ", ".join(f"{title} {d:.2f} mm ({d / max(spacing, 1e-12):.1f}x)" for title, d in distances)
         lines.append(f"\nHeld-out guide meshes to the nearest training mesh (RMS vertex distance): {parts}; "
                      f"training meshes are {spacing:.2f} mm from each other.")
+    train_reach = metrics.get("train_expression_reach_sd")
+    reaches = [(title, metrics.get(f"{split}_expression_reach_sd")) for split, title in SPLIT_TITLES.items()]
+    if train_reach is not None and all(r is not None for _, r in reaches):
+        # Near is not inside: a split beyond the training range asks for extrapolation, where seeds part most.
+        parts = ", ".join(f"{title} {r:.1f}" for title, r in reaches)
+        lines.append(f"Along their most extreme expression mode, held-out meshes reach (median, training standard "
+                     f"deviations from the training mean): {parts}; training meshes reach at most {train_reach:.1f}.")
     by_bar = {m: sorted((int(k.rsplit("_bar", 1)[1]), v) for k, v in metrics.items()
                         if k.startswith(f"{m}_novel_light_psnr_bar")) for m in models}
     if all(by_bar.values()):

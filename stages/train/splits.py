@@ -188,3 +188,40 @@ def nearest_training_distance_mm(vertices: np.ndarray, train: np.ndarray, query:
         dist[rows[:, None] == train_idx[None]] = np.inf  # not its own neighbour
         out[start:start + len(rows)] = dist.min(1)
     return out
+
+
+def expression_reach_sd(vertices: np.ndarray, train: np.ndarray, query: np.ndarray,
+                        variance: float = 0.999) -> np.ndarray:
+    """Per query frame, how many training standard deviations its mesh reaches along its most extreme expression mode.
+
+    ``vertices`` [F, V, 3] head-space meshes; ``train``, ``query`` [F] masks. The modes are
+    the training meshes' principal directions about their mean that hold ``variance`` of
+    their spread (the capacity rule's expression modes); along each, a frame's coefficient is
+    divided by the training frames' standard deviation, and the largest absolute value is
+    returned. Where the nearest-mesh distance says how far a frame lies from the training
+    expressions, this says whether it lies beyond their range: a frame further out along some
+    mode than any training frame asks the networks to extrapolate, not interpolate, and a
+    network's extrapolation is set by where its initial weights put its kinks (it differs
+    from seed to seed). Meshes that never move give zeros.
+
+    The principal directions come from the [T, T] Gram matrix of the offsets in float64, so
+    the cost is T^2 V, bounded for thousands of frames of tens of thousands of vertices by
+    the caller's choice of vertices (the train stage passes the guide mesh).
+    """
+    train_idx, query_idx = np.flatnonzero(train), np.flatnonzero(query)
+    if len(train_idx) < 2:
+        return np.zeros(len(query_idx))
+    ref = np.asarray(vertices[train_idx], np.float64)
+    mean = ref.mean(0)
+    x = (ref - mean).reshape(len(train_idx), -1)  # [T, 3V]
+    eig, vec = np.linalg.eigh(x @ x.T)  # ascending; x = U S Vt with U = vec, S^2 = eig
+    eig, vec = eig[::-1].clip(0.0, None), vec[:, ::-1]
+    total = eig.sum()
+    if not np.isfinite(total) or total <= 0:
+        return np.zeros(len(query_idx))
+    modes = int(np.searchsorted(np.cumsum(eig) / total, variance - 1e-12) + 1)
+    s = np.sqrt(eig[:modes])
+    directions = (vec[:, :modes].T @ x) / s[:, None]  # [K, 3V] unit principal directions
+    std = s / np.sqrt(len(train_idx))  # training frames' std along each (population, about the mean)
+    q = (np.asarray(vertices[query_idx], np.float64) - mean).reshape(len(query_idx), -1)
+    return np.abs(q @ directions.T / std[None]).max(1)

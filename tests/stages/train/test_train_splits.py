@@ -8,7 +8,7 @@ from scipy.spatial import ConvexHull
 
 from avatar.travatar import direction_uv
 from stages.train.splits import ALL_SPLITS, VAL_SPLITS, SPLITS, ValidationSplit, interior_bars, make_splits, \
-    nearest_training_distance_mm
+    expression_reach_sd, nearest_training_distance_mm
 
 
 def _bar_dirs() -> dict[int, np.ndarray]:
@@ -99,3 +99,33 @@ def test_nearest_training_distance_is_to_the_closest_other_training_mesh():
     # Training frames never count themselves: 0 -> 1, 1 -> 0, 3 -> 1 mm. Chunking changes nothing.
     np.testing.assert_allclose(nearest_training_distance_mm(vertices, train, train, chunk=2), [1.0, 1.0, 2.0],
                                atol=1e-4)
+
+
+def test_expression_reach_counts_training_deviations_along_the_most_extreme_mode():
+    rng = np.random.default_rng(1)
+    base = rng.normal(size=(40, 3)) * 0.05  # [V, 3] metres
+    smile, blink = rng.normal(size=(2, 40, 3))
+    smile /= np.linalg.norm(smile)
+    blink -= (blink * smile).sum() * smile  # orthogonal to the smile
+    blink /= np.linalg.norm(blink)
+    # Training: smile amplitudes +-2 cm and blinks +-0.5 cm, each frame one or the other, so the
+    # training std is 2 cm / sqrt(2) along the smile, 0.5 cm / sqrt(2) along the blink.
+    amplitudes = np.array([[0.02, 0], [-0.02, 0], [0, 0.005], [0, -0.005]])
+    held_out = np.array([[0.04, 0], [0, 0.005], [0.01, 0.0025], [0, 0]])  # 2x the smile; a blink; inside; the mean
+    coeffs = np.concatenate([amplitudes, held_out])
+    vertices = base[None] + coeffs[:, 0, None, None] * smile + coeffs[:, 1, None, None] * blink
+    train = np.arange(8) < 4
+    reach = expression_reach_sd(vertices, train, ~train)
+    sd = np.sqrt(2.0)  # a training amplitude is sqrt(2) standard deviations out along its mode
+    np.testing.assert_allclose(reach, [2 * sd, sd, 0.5 * sd, 0.0], atol=1e-6)
+    # Training frames reach the edge of their own range; a blink is as far out as a smile in sd units.
+    np.testing.assert_allclose(expression_reach_sd(vertices, train, train), [sd] * 4, atol=1e-6)
+    # A mode holding under 1 - variance of the spread is not counted: keep only the smile.
+    weak = np.array([[0.02, 0], [-0.02, 0], [0, 1e-5], [0, -1e-5], [0, 0.005]])
+    w = base[None] + weak[:, 0, None, None] * smile + weak[:, 1, None, None] * blink
+    only_smile = expression_reach_sd(w, np.arange(5) < 4, np.arange(5) == 4, variance=0.99)
+    np.testing.assert_allclose(only_smile, [0.0], atol=1e-6)
+    # Still meshes: nothing to reach along.
+    still = np.repeat(base[None], 3, 0)
+    np.testing.assert_array_equal(expression_reach_sd(still, np.array([True, True, False]),
+                                                      np.array([False, False, True])), [0.0])

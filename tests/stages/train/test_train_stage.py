@@ -65,6 +65,8 @@ def test_stage_outputs_metrics_table_and_models(capture, tmp_path):
     assert metrics["train_expression_spacing_mm"] > 0
     assert metrics["novel_perf_expression_distance_mm"] > metrics["train_expression_spacing_mm"]
     assert f"novel performance {metrics['novel_perf_expression_distance_mm']:.2f} mm" in table
+    assert metrics["train_expression_reach_sd"] > 0 and metrics["novel_perf_expression_reach_sd"] >= 0
+    assert f"novel performance {metrics['novel_perf_expression_reach_sd']:.1f}" in table
     for model in ("ours", "travatar"):
         for split in SPLITS:
             assert 0.0 <= metrics[f"{model}_{split}_uncovered_fraction"] <= 1.0
