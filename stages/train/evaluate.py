@@ -114,20 +114,7 @@ def results_table(metrics: dict[str, float], models: list[str]) -> str:
             v = metrics.get(f"{m}_train_psnr")
             cells += ["n/a" if v is None else f"{v:.2f}"] + ["-"] * (len(cols) - 1)
         lines.append("| training images (fit) | " + " | ".join(cells) + " |")
-    spacing = metrics.get("train_expression_spacing_mm")
-    distances = [(title, metrics.get(f"{split}_expression_distance_mm")) for split, title in SPLIT_TITLES.items()]
-    if spacing is not None and all(d is not None for _, d in distances):
-        # How far each split extrapolates in expression: a model that generalises poorly loses most where this is high.
-        parts = ", ".join(f"{title} {d:.2f} mm ({d / max(spacing, 1e-12):.1f}x)" for title, d in distances)
-        lines.append(f"\nHeld-out guide meshes to the nearest training mesh (RMS vertex distance): {parts}; "
-                     f"training meshes are {spacing:.2f} mm from each other.")
-    train_reach = metrics.get("train_expression_reach_sd")
-    reaches = [(title, metrics.get(f"{split}_expression_reach_sd")) for split, title in SPLIT_TITLES.items()]
-    if train_reach is not None and all(r is not None for _, r in reaches):
-        # Near is not inside: a split beyond the training range asks for extrapolation, where seeds part most.
-        parts = ", ".join(f"{title} {r:.1f}" for title, r in reaches)
-        lines.append(f"Along their most extreme expression mode, held-out meshes reach (median, training standard "
-                     f"deviations from the training mean): {parts}; training meshes reach at most {train_reach:.1f}.")
+    lines += _expression_lines(metrics)
     by_bar = {m: sorted((int(k.rsplit("_bar", 1)[1]), v) for k, v in metrics.items()
                         if k.startswith(f"{m}_novel_light_psnr_bar")) for m in models}
     if all(by_bar.values()):
@@ -143,3 +130,27 @@ def results_table(metrics: dict[str, float], models: list[str]) -> str:
                           for name, title, f, e in coverage)
         lines.append(f"\nForeground the model leaves transparent (share of the error there): {parts}.")
     return "\n".join(lines) + "\n"
+
+
+def _per_split(metrics: dict, key: str) -> list[tuple[str, float]] | None:
+    """``(title, metrics[f"{split}_{key}"])`` for every split, or None when a split lacks it."""
+    values = [(title, metrics.get(f"{split}_{key}")) for split, title in SPLIT_TITLES.items()]
+    return values if all(v is not None for _, v in values) else None
+
+
+def _expression_lines(metrics: dict) -> list[str]:
+    """The table's lines on how far the held-out expressions lie from the training ones."""
+    lines = []
+    spacing, distances = metrics.get("train_expression_spacing_mm"), _per_split(metrics, "expression_distance_mm")
+    if spacing is not None and distances:
+        # How far each split extrapolates in expression: a model that generalises poorly loses most where this is high.
+        parts = ", ".join(f"{title} {d:.2f} mm ({d / max(spacing, 1e-12):.1f}x)" for title, d in distances)
+        lines.append(f"\nHeld-out guide meshes to the nearest training mesh (RMS vertex distance): {parts}; "
+                     f"training meshes are {spacing:.2f} mm from each other.")
+    train_reach, reaches = metrics.get("train_expression_reach_sd"), _per_split(metrics, "expression_reach_sd")
+    if train_reach is not None and reaches:
+        # Near is not inside: a split beyond the training range asks the model to extrapolate.
+        parts = ", ".join(f"{title} {r:.1f}" for title, r in reaches)
+        lines.append(f"Along their most extreme expression mode, held-out meshes reach (median, training standard "
+                     f"deviations from the training mean): {parts}; training meshes reach at most {train_reach:.1f}.")
+    return lines
