@@ -15,6 +15,7 @@ from pydantic import ConfigDict, Field
 from pydantic.dataclasses import dataclass as pydantic_dataclass
 from scipy.spatial import ConvexHull
 
+from avatar.capacity import count_expression_modes
 from avatar.travatar import direction_uv
 
 #: The test splits, measured once at the end (their metric keys are ``{model}_{split}_*``).
@@ -200,9 +201,8 @@ def expression_reach_sd(vertices: np.ndarray, train: np.ndarray, query: np.ndarr
     divided by the training frames' standard deviation, and the largest absolute value is
     returned. Where the nearest-mesh distance says how far a frame lies from the training
     expressions, this says whether it lies beyond their range: a frame further out along some
-    mode than any training frame asks the networks to extrapolate, not interpolate, and a
-    network's extrapolation is set by where its initial weights put its kinks (it differs
-    from seed to seed). Meshes that never move give zeros.
+    mode than any training frame asks the networks to extrapolate, not interpolate. Meshes
+    that never move give zeros.
 
     The principal directions come from the [T, T] Gram matrix of the offsets in float64, so
     the cost is T^2 V, bounded for thousands of frames of tens of thousands of vertices by
@@ -212,14 +212,13 @@ def expression_reach_sd(vertices: np.ndarray, train: np.ndarray, query: np.ndarr
     if len(train_idx) < 2:
         return np.zeros(len(query_idx))
     ref = np.asarray(vertices[train_idx], np.float64)
+    modes = count_expression_modes(ref, variance)  # the capacity rule's count, so the two name the same modes
+    if modes == 0:
+        return np.zeros(len(query_idx))
     mean = ref.mean(0)
     x = (ref - mean).reshape(len(train_idx), -1)  # [T, 3V]
     eig, vec = np.linalg.eigh(x @ x.T)  # ascending; x = U S Vt with U = vec, S^2 = eig
     eig, vec = eig[::-1].clip(0.0, None), vec[:, ::-1]
-    total = eig.sum()
-    if not np.isfinite(total) or total <= 0:
-        return np.zeros(len(query_idx))
-    modes = int(np.searchsorted(np.cumsum(eig) / total, variance - 1e-12) + 1)
     s = np.sqrt(eig[:modes])
     directions = (vec[:, :modes].T @ x) / s[:, None]  # [K, 3V] unit principal directions
     std = s / np.sqrt(len(train_idx))  # training frames' std along each (population, about the mean)

@@ -71,10 +71,8 @@ class LossWeights:
                        "`<model>_latent_noise_to_code_spread`), and that noise keeps the decoder from overfitting the "
                        "training expressions: with far less of it the tiny preset fit the training images better and new "
                        "expressions worse (docs/experiments.md, section 41). Heavier, the seeds agree more and the "
-                       "training performance is fitted less: at 3e-3 the tiny preset's figures varied by at most "
-                       "0.15 dB over seeds, for -0.1 to -0.2 dB on validation light and -0.5 dB on the training "
-                       "images (section 42); raise it when one run must stand for any. Change it only with the "
-                       "validation splits to judge by.")
+                       "training performance is fitted less (section 42): raise it (3e-3) when one run must stand "
+                       "for any. Change it only with the validation splits to judge by.")
     mat: float = Field(0.1, ge=0, description="Weight of the matte loss (L1, matte vs accumulated opacity); raise "
                        "it if the avatar leaks opacity outside the head.")
     mat_delta: float = Field(0.0, ge=0, lt=1, description="Opacity error under which the matte loss turns "
