@@ -72,7 +72,10 @@ class CapacityRule(BaseModel):
         "counted expression modes hold (see count_expression_modes).")
     latent_per_mode: float = Field(
         2.0, ge=0, description="Latent size per expression mode, rounded up to a power of two within "
-        "[min_latent, max_latent]; 0 = keep the latent size of the train stage's avatar section.")
+        "[min_latent, max_latent]; 0 = keep the latent size of the train stage's avatar section. Fewer "
+        "dimensions per mode leave the encoder less room to give a training frame a code of its own: new "
+        "expressions render better and held-out lights on the training expressions worse. Lower it where the "
+        "training frames are few (tiny: 1, for 34 frames; docs/experiments.md, section 43).")
     min_latent: int = Field(8, ge=1, description="Smallest latent size.")
     max_latent: int = Field(256, ge=1, description="Largest latent size (the paper's 256).")
 
