@@ -15,6 +15,8 @@ from typing import Any
 
 import torch
 
+from avatar.capacity import latent_size
+from avatar.config import AvatarConfig
 from avatar.model import (RelightableMVP, count_parameters, latent_noise_to_code_spread, share_below_floor,
                           share_of_boxes_at_smallest)
 from avatar.raymarch import RaymarchKernel
@@ -63,6 +65,7 @@ class TrainedHeads:
             out[f"{kind}_opacity_logits_below_floor"] = share_below_floor(model)
             out[f"{kind}_boxes_at_smallest_size"] = share_of_boxes_at_smallest(model)
             out[f"{kind}_latent_noise_to_code_spread"] = self.latent_noise_to_code_spread[kind]
+            out[f"{kind}_latent_dim"] = model.config.latent_dim
         return out
 
 
@@ -82,7 +85,7 @@ def fit_heads(setup: TrainingSetup, num_bars: int, params: TrainParams, device: 
     trainers: dict[str, ModelTrainer] = {}
     parameters: dict[str, int] = {}
     for kind in kinds:
-        config = avatar if kind == "ours" else avatar.model_copy(update={"light_basis": len(setup.basis_bars)})
+        config = avatar if kind == "ours" else baseline_config(setup, params)
         torch.manual_seed(params.seed if params.init_seed is None else params.init_seed)
         model = RelightableMVP(config, setup.layout, num_bars).to(device)
         renderer = renderers[kind] = Renderer(model, kind, setup.basis if kind == "travatar" else None,
@@ -116,6 +119,18 @@ def fit_heads(setup: TrainingSetup, num_bars: int, params: TrainParams, device: 
                         training_seconds=training_seconds,
                         latent_noise_to_code_spread={kind: latent_noise_to_code_spread(renderers[kind].model, fitted_meshes)
                                                      for kind in kinds})
+
+
+def baseline_config(setup: TrainingSetup, params: TrainParams) -> AvatarConfig:
+    """TRAvatar*'s configuration: ours' with its light basis, and its own latent size where
+    ``params.baseline_latent_per_mode`` gives one (``capacity: auto`` and moving meshes only)."""
+    update: dict = {"light_basis": len(setup.basis_bars)}
+    modes = setup.capacity.stats.expression_modes
+    if params.baseline_latent_per_mode is not None and params.capacity == "auto" and modes > 0:
+        rule = params.capacity_rule.model_copy(update={"latent_per_mode": params.baseline_latent_per_mode})
+        if rule.latent_per_mode > 0:
+            update["latent_dim"] = latent_size(modes, rule)
+    return setup.avatar.model_copy(update=update)
 
 
 def _curve_psnr(renderer: Renderer, images: AssessImages, pairs: list[tuple[int, int]]) -> Callable[[], float]:

@@ -38,6 +38,11 @@ class TrainParams(StageParams):
     iterations: int = Field(2000, ge=1, description="Training iterations of our model.")
     baseline: bool = Field(True, description="Also train the TRAvatar* baseline on the same data.")
     baseline_iterations: int = Field(0, ge=0, description="Training iterations of TRAvatar* (0 = same as ours).")
+    baseline_latent_per_mode: float | None = Field(
+        None, ge=0, description="TRAvatar*'s latent size per expression mode under `capacity: auto` (None = "
+        "capacity_rule.latent_per_mode, the same code size as ours). Set it where the two models are best at "
+        "different sizes, so that the baseline stays trained as well as it can be; ignored with `capacity: "
+        "fixed` or meshes that never move.")
     batch_size: int = Field(4, ge=1, description="Images per iteration (the paper: 12).")
     rays_per_image: int = Field(256, ge=1, description="Rays sampled per image per iteration (foreground-weighted).")
     lr: float = Field(1e-3, gt=0, description="Adam learning rate (the paper: 1e-4).")

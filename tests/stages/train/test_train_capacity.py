@@ -153,3 +153,27 @@ def test_a_rollback_to_a_state_saved_before_pruning_keeps_the_primitives_pruned(
     assert int((~tr.model.prim_keep).sum()) == state.pruned
     # Every iteration after pruning, the rolled-back one and those after it included, raymarches only the kept ones.
     assert seen[6:] == [config.num_prims - state.pruned] * (len(seen) - 6)
+
+
+def test_the_baseline_can_keep_a_code_size_of_its_own(capture, tmp_path):
+    # Two expression modes: ours at the rule's 2 per mode (4, raised to min_latent 8), TRAvatar* at 8 per mode (16).
+    out = run_stage_for_test(STAGE, tmp_path, capture, {**BASE, "capacity": "auto", "baseline": True,
+                                                          "baseline_latent_per_mode": 8, "iterations": 4,
+                                                          "rays_per_image": 32})
+    metrics = json.loads((out / "metrics.json").read_text())
+    from avatar.io import load_trained
+
+    ours, _ = load_trained(out / "models" / "ours")
+    travatar, _ = load_trained(out / "models" / "travatar")
+    assert metrics["capacity_expression_modes"] == 2
+    assert ours.config.latent_dim == 8 == metrics["ours_latent_dim"] == metrics["capacity_latent_dim"]
+    assert travatar.config.latent_dim == 16 == metrics["travatar_latent_dim"]
+    # Everything else of the baseline's size is ours'.
+    assert travatar.config.model_copy(update={"latent_dim": 8, "light_basis": 0}) == ours.config
+
+
+def test_the_baseline_shares_ours_code_size_by_default(capture, tmp_path):
+    out = run_stage_for_test(STAGE, tmp_path, capture, {**BASE, "capacity": "auto", "baseline": True,
+                                                          "iterations": 2, "rays_per_image": 32})
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["ours_latent_dim"] == metrics["travatar_latent_dim"] == metrics["capacity_latent_dim"]
