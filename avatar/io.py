@@ -13,6 +13,8 @@ from avatar.layout import GuideLayout
 from avatar.model import RelightableMVP
 
 _LAYOUT_KEYS = ("guide_vertex_ids", "anchor_tris", "anchor_bary", "normal_sign", "half_extent_m", "mean_guide_vertices")
+#: Layout arrays only some heads have (heads saved before them load without).
+_OPTIONAL_LAYOUT_KEYS = ("expression_basis",)
 
 
 def save_trained(folder: Path, model: RelightableMVP, kind: str, extra: dict[str, Any] | None = None) -> None:
@@ -33,7 +35,7 @@ def load_trained(folder: Path, device: str | torch.device = "cpu") -> tuple[Reli
 
     meta = json.loads((Path(folder) / "model.json").read_text())
     state = load_file(str(Path(folder) / "model.safetensors"))
-    layout = GuideLayout(**{k: state[k].numpy() for k in _LAYOUT_KEYS})
+    layout = GuideLayout(**{k: state[k].numpy() for k in _LAYOUT_KEYS + _OPTIONAL_LAYOUT_KEYS if k in state})
     model = RelightableMVP(AvatarConfig(**meta["config"]), layout, int(meta["num_bars"]))
     model.load_state_dict(state)
     return model.to(device).eval(), meta

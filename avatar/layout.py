@@ -42,6 +42,11 @@ class GuideLayout:
         normal_sign: [P] +1 or -1 so that the triangle normal points out of the head.
         half_extent_m: [P] base half edge length of each primitive box, metres.
         mean_guide_vertices: [U, 3] guide vertices of the mean mesh (head space, metres).
+        expression_basis: [K, 3U] orthonormal directions of the training expressions, over the
+            guide vertices' flattened offsets from ``mean_guide_vertices``; where given, the
+            encoder reads only the offsets' part along them (``RelightableMVP.encode``), so a
+            direction the training meshes hold only as the tracker's jitter cannot reach the
+            code. None: the encoder reads the whole offset.
     """
 
     guide_vertex_ids: np.ndarray
@@ -50,10 +55,11 @@ class GuideLayout:
     normal_sign: np.ndarray
     half_extent_m: np.ndarray
     mean_guide_vertices: np.ndarray
+    expression_basis: np.ndarray | None = None
 
     def as_arrays(self) -> dict[str, np.ndarray]:
-        """The layout as named arrays (for checkpoints)."""
-        return {k: np.asarray(getattr(self, k)) for k in self.__dataclass_fields__}
+        """The layout as named arrays (for checkpoints); an absent expression basis is left out."""
+        return {k: np.asarray(getattr(self, k)) for k in self.__dataclass_fields__ if getattr(self, k) is not None}
 
 
 def _barycentric(points: np.ndarray, tri_xyz: np.ndarray) -> np.ndarray:
@@ -181,6 +187,25 @@ def layout_for(config: "AvatarConfig", mean_vertices: np.ndarray, triangles: np.
     return build_layout(mean_vertices, triangles, config.prims_per_side, config.layout_theta_deg,
                         config.prim_overlap, tuple(config.layout_elevation_deg), config.layout_projection,
                         config.layout_centre_elevation_deg)
+
+
+def expression_basis(guide_offsets: np.ndarray, modes: int) -> np.ndarray:
+    """The ``modes`` principal directions [modes, 3U] (orthonormal rows) of guide-vertex offsets [F, U, 3].
+
+    The offsets are taken about their own mean, so the directions are the expression's spread
+    whatever mean they were measured from. Computed in float64 from the [F, F] Gram matrix
+    (F training frames is far below 3U coordinates).
+    """
+    x = np.asarray(guide_offsets, np.float64).reshape(len(guide_offsets), -1)
+    if modes < 1 or len(x) < 2:
+        raise ValueError(f"expression_basis: needs at least 1 mode and 2 frames, got {modes} and {len(x)}")
+    x = x - x.mean(0)
+    eig, vec = np.linalg.eigh(x @ x.T)
+    order = np.argsort(eig)[::-1][:modes]
+    if eig[order[-1]] <= 1e-12 * max(eig[order[0]], 1e-300):
+        raise ValueError(f"expression_basis: the offsets span fewer than {modes} directions")
+    rows = (x.T @ vec[:, order]) / np.sqrt(eig[order])  # [3U, K] unit columns
+    return rows.T.astype(np.float32)
 
 
 def triangulate(faces: np.ndarray) -> np.ndarray:

@@ -219,8 +219,15 @@ class RelightableMVP(nn.Module):
         return mesh_vertices[:, self.guide_vertex_ids]
 
     def encode(self, mesh_vertices: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Tracked meshes [B, V, 3] (head space, metres) -> mu, logvar [B, Z]."""
+        """Tracked meshes [B, V, 3] (head space, metres) -> mu, logvar [B, Z].
+
+        With the layout's expression basis the offsets are first projected onto it.
+        """
         offsets = (self.guide_vertices_of(mesh_vertices) - self.mean_guide_vertices) / OFFSET_SCALE_M
+        basis = getattr(self, "expression_basis", None)
+        if basis is not None:
+            flat = offsets.flatten(1)
+            offsets = ((flat @ basis.T) @ basis).view_as(offsets)
         return self.encoder(offsets)
 
     # ---- decoder -------------------------------------------------------------------------

@@ -43,6 +43,12 @@ class TrainParams(StageParams):
         "capacity_rule.latent_per_mode, the same code size as ours). Set it where the two models are best at "
         "different sizes, so that the baseline stays trained as well as it can be; ignored with `capacity: "
         "fixed` or meshes that never move.")
+    encoder_input: Literal["offsets", "expression_modes"] = Field(
+        "offsets", description="What both models' encoders read of a tracked mesh. 'offsets': the guide vertices' "
+        "whole offsets from the training mean (the paper). 'expression_modes': only their part along the expression "
+        "modes the capacity rule counts (capacity_rule.expression_variance of the training meshes' spread), so the "
+        "directions the training meshes move along only by the tracker's jitter do not reach the code. Needs meshes "
+        "that move (it falls back to 'offsets', with a log line, where they do not).")
     batch_size: int = Field(4, ge=1, description="Images per iteration (the paper: 12).")
     rays_per_image: int = Field(256, ge=1, description="Rays sampled per image per iteration (foreground-weighted).")
     lr: float = Field(1e-3, gt=0, description="Adam learning rate (the paper: 1e-4).")

@@ -6,6 +6,7 @@ stage, the DDP worker and the benches build the same setup from the same data.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from dataclasses import dataclass
 
@@ -15,7 +16,7 @@ import torch
 from avatar.capacity import Capacity, CapacityInputError, CaptureStats, choose_capacity, count_expression_modes, \
     footprint_from_mattes
 from avatar.config import AvatarConfig
-from avatar.layout import GuideLayout, layout_for
+from avatar.layout import GuideLayout, expression_basis, layout_for
 from avatar.travatar import LightBasis
 from pipeline.errors import ConfigError, InputError
 from stages.train.assess_images import AssessImages, assess_factor
@@ -90,7 +91,8 @@ def prepare_training(data: TrainData, params: TrainParams, device: torch.device,
              capacity.stats.image_height_px, capacity.stats.footprint_px, capacity.stats.frames,
              capacity.stats.expression_modes)
     mean_mesh = data.vertices[train_frames].mean(0)
-    layout = layout_for(avatar, mean_mesh, data.triangles)
+    layout = with_encoder_input(layout_for(avatar, mean_mesh, data.triangles), data.vertices[train_frames],
+                                params.encoder_input, capacity.stats.expression_modes, log)
     tensors = training_tensors(data, layout.guide_vertex_ids, device)
     assess = AssessImages(tensors, assess_factor(tensors.width, tensors.height, params.assess_width_px))
     basis_bars = sorted(int(b) for b in np.unique(data.bar[train_frames]))
@@ -102,6 +104,24 @@ def prepare_training(data: TrainData, params: TrainParams, device: torch.device,
                          image_scale=image_scale, bar_dirs=bar_dirs, capacity=capacity, avatar=avatar,
                          layout=layout, tensors=tensors, basis_bars=basis_bars, basis=basis, num_cams=num_cams,
                          pairs=pairs, curve_pairs=pairs["val_light"][:params.curve_images], assess=assess)
+
+
+def with_encoder_input(layout: GuideLayout, train_vertices: np.ndarray, encoder_input: str, modes: int,
+                       log: logging.Logger) -> GuideLayout:
+    """``layout`` with the expression basis that ``train.encoder_input`` asks for (none for 'offsets').
+
+    ``modes`` is the capacity rule's count of expression modes in ``train_vertices`` [F, V, 3],
+    so the encoder reads the same modes the latent size is sized by.
+    """
+    if encoder_input == "offsets":
+        return layout
+    if modes < 1:
+        log.info("encoder input: the training meshes do not move; the encoder reads the whole offsets")
+        return layout
+    offsets = train_vertices[:, layout.guide_vertex_ids] - layout.mean_guide_vertices[None]
+    basis = expression_basis(offsets, modes)
+    log.info("encoder input: the guide offsets' part along the %d expression modes", modes)
+    return dataclasses.replace(layout, expression_basis=basis)
 
 
 def training_tensors(data: TrainData, guide_ids: np.ndarray, device: torch.device) -> TrainTensors:

@@ -240,3 +240,54 @@ def test_travatar_interpolation_weights():
     w = basis.weights(query)[0]
     assert (w > 0).sum() <= 3 and np.all(w >= 0) and w.sum() == pytest.approx(1.0)
     np.testing.assert_allclose(w @ direction_uv(dirs), direction_uv(query)[0], atol=1e-9)
+
+
+def test_an_expression_basis_keeps_the_code_blind_to_other_directions(tmp_path):
+    import dataclasses
+
+    from avatar.layout import expression_basis
+
+    verts, faces = _sphere()
+    layout = build_layout(verts, faces, SMALL.prims_per_side)
+    u = layout.mean_guide_vertices.shape[0]
+    rng = np.random.default_rng(0)
+    # Training offsets (metres) along two directions of the guide vertices, plus jitter far smaller.
+    directions = rng.normal(size=(2, u, 3))
+    weights = rng.normal(size=(12, 2))
+    offsets = np.einsum("fk,kuc->fuc", weights, directions) * 1e-3 + rng.normal(size=(12, u, 3)) * 1e-7
+    basis = expression_basis(offsets, 2)
+    np.testing.assert_allclose(basis @ basis.T, np.eye(2), atol=1e-5)
+    torch.manual_seed(0)
+    plain = RelightableMVP(SMALL, layout, num_bars=4)
+    torch.manual_seed(0)
+    projected = RelightableMVP(SMALL, dataclasses.replace(layout, expression_basis=basis), num_bars=4)
+
+    def encoded(model, offsets_m):
+        mesh = torch.as_tensor((layout.mean_guide_vertices + offsets_m).astype(np.float32))[None]
+        return model.encode(mesh)[0]
+
+    along = offsets[3]
+    across = rng.normal(size=(u, 3)) * 1e-3
+    across_flat = across.reshape(-1) - basis.T.astype(np.float64) @ (basis.astype(np.float64) @ across.reshape(-1))
+    across = across_flat.reshape(u, 3)
+    with torch.no_grad():
+        # Along the basis the projection changes (nearly) nothing: the same weights give the same code.
+        torch.testing.assert_close(encoded(projected, along), encoded(plain, along), atol=1e-4, rtol=1e-3)
+        # Across it, the projected encoder does not see the move; the plain one does.
+        torch.testing.assert_close(encoded(projected, along + across), encoded(projected, along), atol=1e-5, rtol=0)
+        assert float((encoded(plain, along + across) - encoded(plain, along)).abs().max()) > 1e-3
+    # The basis is saved with the head and read back.
+    save_trained(tmp_path / "m", projected, "ours")
+    loaded, _ = load_trained(tmp_path / "m")
+    torch.testing.assert_close(loaded.expression_basis, projected.expression_basis)
+    with torch.no_grad():
+        torch.testing.assert_close(encoded(loaded, along + across), encoded(projected, along), atol=1e-5, rtol=0)
+
+
+def test_expression_basis_refuses_more_modes_than_the_offsets_span():
+    from avatar.layout import expression_basis
+
+    offsets = np.zeros((5, 10, 3))
+    offsets[:, 0, 0] = np.arange(5)
+    with pytest.raises(ValueError, match="fewer than 2 directions"):
+        expression_basis(offsets, 2)

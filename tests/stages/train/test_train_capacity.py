@@ -177,3 +177,25 @@ def test_the_baseline_shares_ours_code_size_by_default(capture, tmp_path):
                                                           "iterations": 2, "rays_per_image": 32})
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["ours_latent_dim"] == metrics["travatar_latent_dim"] == metrics["capacity_latent_dim"]
+
+
+def test_the_encoder_can_read_only_the_counted_expression_modes(capture, tmp_path):
+    out = run_stage_for_test(STAGE, tmp_path, capture, {**BASE, "capacity": "auto", "baseline": True,
+                                                          "encoder_input": "expression_modes", "iterations": 2,
+                                                          "rays_per_image": 32})
+    metrics = json.loads((out / "metrics.json").read_text())
+    from avatar.io import load_trained
+
+    for kind in ("ours", "travatar"):
+        model, _ = load_trained(out / "models" / kind)
+        basis = model.expression_basis.double()
+        assert basis.shape == (metrics["capacity_expression_modes"], 3 * model.num_guide_vertices)
+        torch.testing.assert_close(basis @ basis.T, torch.eye(len(basis), dtype=torch.float64), atol=1e-5, rtol=0)
+
+
+def test_the_encoder_reads_the_whole_offsets_by_default(capture, tmp_path):
+    out = run_stage_for_test(STAGE, tmp_path, capture, {**BASE, "iterations": 2, "rays_per_image": 32})
+    from avatar.io import load_trained
+
+    model, _ = load_trained(out / "models" / "ours")
+    assert not hasattr(model, "expression_basis")
