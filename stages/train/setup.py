@@ -119,7 +119,12 @@ def with_encoder_input(layout: GuideLayout, train_vertices: np.ndarray, encoder_
         log.info("encoder input: the training meshes do not move; the encoder reads the whole offsets")
         return layout
     offsets = train_vertices[:, layout.guide_vertex_ids] - layout.mean_guide_vertices[None]
-    basis = expression_basis(offsets, modes)
+    try:
+        basis = expression_basis(offsets, modes)
+    except ValueError as err:  # a guide mesh too sparse to hold the modes the full meshes have
+        raise InputError(f"train.encoder_input 'expression_modes': the {len(layout.guide_vertex_ids)} guide vertices "
+                         f"do not span the {modes} expression modes counted on the full tracked meshes ({err}); "
+                         "set train.encoder_input: offsets or lower capacity_rule.expression_variance") from err
     log.info("encoder input: the guide offsets' part along the %d expression modes", modes)
     return dataclasses.replace(layout, expression_basis=basis)
 

@@ -199,3 +199,21 @@ def test_the_encoder_reads_the_whole_offsets_by_default(capture, tmp_path):
 
     model, _ = load_trained(out / "models" / "ours")
     assert not hasattr(model, "expression_basis")
+
+
+def test_a_guide_mesh_that_misses_the_expression_modes_is_a_clear_error():
+    import logging
+
+    from avatar.layout import GuideLayout
+    from pipeline.errors import InputError
+    from stages.train.setup import with_encoder_input
+
+    # Two full-mesh expression modes, but the one guide vertex moves along one direction only.
+    frames = np.zeros((6, 3, 3))
+    frames[:, 0, 0] = np.arange(6)
+    frames[:, 2, 1] = np.arange(6) ** 2
+    layout = GuideLayout(guide_vertex_ids=np.array([0]), anchor_tris=np.zeros((1, 3), int),
+                         anchor_bary=np.ones((1, 3)) / 3, normal_sign=np.ones(1), half_extent_m=np.ones(1),
+                         mean_guide_vertices=frames[:, :1].mean(0))
+    with pytest.raises(InputError, match="train.encoder_input.*1 guide vertices.*2 expression modes.*offsets"):
+        with_encoder_input(layout, frames, "expression_modes", 2, logging.getLogger("test"))
