@@ -190,11 +190,11 @@ def layout_for(config: "AvatarConfig", mean_vertices: np.ndarray, triangles: np.
 
 
 def expression_basis(guide_offsets: np.ndarray, modes: int) -> np.ndarray:
-    """The ``modes`` principal directions [modes, 3U] (orthonormal rows) of guide-vertex offsets [F, U, 3].
+    """The ``modes`` principal directions [modes, 3U] (orthonormal rows, float64) of vertex offsets [F, U, 3].
 
     The offsets are taken about their own mean, so the directions are the expression's spread
-    whatever mean they were measured from. Computed in float64 from the [F, F] Gram matrix
-    (F training frames is far below 3U coordinates).
+    whatever mean they were measured from. Computed from the [F, F] Gram matrix (F training
+    frames is far below 3U coordinates).
     """
     x = np.asarray(guide_offsets, np.float64).reshape(len(guide_offsets), -1)
     if modes < 1 or len(x) < 2:
@@ -204,8 +204,7 @@ def expression_basis(guide_offsets: np.ndarray, modes: int) -> np.ndarray:
     order = np.argsort(eig)[::-1][:modes]
     if eig[order[-1]] <= 1e-12 * max(eig[order[0]], 1e-300):
         raise ValueError(f"expression_basis: the offsets span fewer than {modes} directions")
-    rows = (x.T @ vec[:, order]) / np.sqrt(eig[order])  # [3U, K] unit columns
-    return rows.T.astype(np.float32)
+    return (vec[:, order].T @ x) / np.sqrt(eig[order])[:, None]  # x = U S Vt: the rows of Vt
 
 
 def triangulate(faces: np.ndarray) -> np.ndarray:

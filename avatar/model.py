@@ -149,7 +149,9 @@ class RelightableMVP(nn.Module):
         self.config = config
         n, m = config.prims_per_side, config.voxels_per_side
         for name, arr in layout.as_arrays().items():
-            self.register_buffer(name, torch.as_tensor(arr))
+            tensor = torch.as_tensor(arr)
+            # The networks run in float32: a float64 array (e.g. a basis straight from numpy) is stored as one.
+            self.register_buffer(name, tensor.float() if tensor.is_floating_point() else tensor)
         self.num_guide_vertices = int(layout.mean_guide_vertices.shape[0])
         self.encoder = MeshEncoder(self.num_guide_vertices, config.encoder_hidden, config.latent_dim)
         self.mesh_decoder = nn.Sequential(nn.Linear(config.latent_dim, config.encoder_hidden), nn.LeakyReLU(0.2),

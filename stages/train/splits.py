@@ -16,6 +16,7 @@ from pydantic.dataclasses import dataclass as pydantic_dataclass
 from scipy.spatial import ConvexHull
 
 from avatar.capacity import count_expression_modes
+from avatar.layout import expression_basis
 from avatar.travatar import direction_uv
 
 #: The test splits, measured once at the end (their metric keys are ``{model}_{split}_*``).
@@ -216,11 +217,8 @@ def expression_reach_sd(vertices: np.ndarray, train: np.ndarray, query: np.ndarr
     if modes == 0:
         return np.zeros(len(query_idx))
     mean = ref.mean(0)
-    x = (ref - mean).reshape(len(train_idx), -1)  # [T, 3V]
-    eig, vec = np.linalg.eigh(x @ x.T)  # ascending; x = U S Vt with U = vec, S^2 = eig
-    eig, vec = eig[::-1].clip(0.0, None), vec[:, ::-1]
-    s = np.sqrt(eig[:modes])
-    directions = (vec[:, :modes].T @ x) / s[:, None]  # [K, 3V] unit principal directions
-    std = s / np.sqrt(len(train_idx))  # training frames' std along each (population, about the mean)
+    directions = expression_basis(ref - mean, modes)  # [K, 3V] unit principal directions
+    # Training frames' std along each (population, about the mean).
+    std = np.sqrt(np.mean(((ref - mean).reshape(len(train_idx), -1) @ directions.T) ** 2, axis=0))
     q = (np.asarray(vertices[query_idx], np.float64) - mean).reshape(len(query_idx), -1)
     return np.abs(q @ directions.T / std[None]).max(1)
